@@ -1,0 +1,3 @@
+"""dyngs: dynamic (4D) Gaussian Splatting."""
+
+__version__ = "0.1.0"

@@ -1,0 +1,1 @@
+"""Renderers: `cpu-reference` (pure PyTorch, the specification) and `cuda-tile` (gsplat)."""

@@ -1,0 +1,64 @@
+"""The renderer protocol and the data it exchanges.
+
+Letters used in shapes: N Gaussians, H×W image.
+
+A renderer is one call: Gaussians, a camera and a background colour in; an image and
+the per-Gaussian screen-space data that densification needs out. Every renderer obeys
+the numerical guards below (DESIGN.md), in forward and backward alike.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+from jaxtyping import Bool, Float, Int
+from torch import Tensor
+
+from dyngs.types import Camera, Gaussians
+
+__all__ = ["Camera", "Gaussians", "Guards", "RenderOutput", "Renderer"]
+
+
+@dataclass(frozen=True)
+class Guards:
+    """Numerical guards shared by every renderer (DESIGN.md's table)."""
+
+    eps2d: float = 0.3
+    """Added to the diagonal of every 2D covariance, in px² (the low-pass filter of Kerbl et al.
+    2023)."""
+    off_axis: float = 1.3
+    """The EWA Jacobian sees x/z and y/z clamped to ±off_axis·tan(fov/2) (Kerbl et al. 2023)."""
+    alpha_min: float = 1.0 / 255.0
+    """A Gaussian–pixel pair whose α is below this is skipped."""
+    alpha_max: float = 0.99
+    """α is clamped to at most this, so transmittance never reaches zero (Kerbl et al. 2023)."""
+    transmittance_min: float = 1e-4
+    """Compositing stops before transmittance would fall below this."""
+    quat_eps: float = 1e-12
+    """Quaternions are normalised by max(|q|, quat_eps); a zero quaternion means no rotation."""
+
+
+@dataclass
+class RenderOutput:
+    """What a renderer returns for one camera."""
+
+    rgb: Float[Tensor, "H W 3"]
+    alpha: Float[Tensor, "H W 1"]
+    depth: Float[Tensor, "H W 1"]
+    """Expected depth along the optical axis, Σ wᵢzᵢ / Σ wᵢ; 0 where nothing is drawn."""
+    means2d: Float[Tensor, "N 2"]
+    """Projected centres in pixels. Retains its gradient after backward when the inputs
+    require grad, for densification by screen-space gradient."""
+    radii: Int[Tensor, "N 2"]
+    """Per-axis screen extent in whole pixels; 0 where a Gaussian is not drawn."""
+    visible: Bool[Tensor, " N"]
+    """True for every Gaussian that can touch at least one pixel."""
+
+
+class Renderer(Protocol):
+    """Draws Gaussians from one camera over a background colour."""
+
+    def __call__(
+        self, gaussians: Gaussians, camera: Camera, background: Float[Tensor, 3]
+    ) -> RenderOutput: ...

@@ -1,0 +1,250 @@
+"""The CPU reference renderer against the brute-force oracle, autograd's gradcheck and
+hand-computed cases."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import pytest
+import torch
+
+from dyngs.renderers.base import Guards
+from dyngs.renderers.cpu_reference import (
+    CpuReferenceConfig,
+    CpuReferenceRenderer,
+    project,
+    rasterize,
+)
+from dyngs.types import Camera, Gaussians
+from tests.renderers.oracle import render_oracle
+from tests.renderers.scenes import random_camera, random_gaussians, random_scene
+
+DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+
+# Non-square images whose sides are not multiples of 16 (or of 8).
+SIZES = [(61, 37), (45, 83), (100, 27)]
+
+
+def _max_abs(a: torch.Tensor, b: torch.Tensor, where: torch.Tensor | None = None) -> float:
+    diff = (a.double() - b.double()).abs()
+    if where is not None:
+        diff = diff[where]
+    return float(diff.max()) if diff.numel() else 0.0
+
+
+@pytest.mark.parametrize("seed", range(6))
+@pytest.mark.parametrize("tile_size", [16, 8])
+def test_float64_matches_oracle(seed: int, tile_size: int) -> None:
+    width, height = SIZES[seed % len(SIZES)]
+    sh_degree = [None, 0, 1, 2, 3, 3][seed]
+    antialiased = seed % 2 == 1
+    gaussians, camera, background = random_scene(seed, 300, width, height, torch.float64, sh_degree)
+    renderer = CpuReferenceConfig(tile_size=tile_size, antialiased=antialiased).build()
+
+    out = renderer(gaussians, camera, background)
+    ref = render_oracle(gaussians, camera, background, antialiased=antialiased)
+
+    assert out.rgb.shape == (height, width, 3) and out.rgb.dtype == torch.float64
+    assert _max_abs(out.rgb, ref.rgb) <= 1e-9
+    assert _max_abs(out.alpha, ref.alpha) <= 1e-9
+    assert _max_abs(out.depth, ref.depth) <= 1e-9
+    # The scene is not trivial: plenty of coverage, and some Gaussians are not drawn.
+    assert float(ref.alpha.mean()) > 0.2
+    assert 0 < int(out.visible.sum()) < len(gaussians)
+    # Every Gaussian that reaches α ≥ 1/255 somewhere is inside the drawn set: the screen
+    # extent never drops a pixel.
+    assert bool((out.visible | ~ref.touches).all())
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_float32_matches_oracle(seed: int) -> None:
+    width, height = SIZES[seed % len(SIZES)]
+    sh_degree = [None, 0, 1, 2, 3, None][seed]
+    antialiased = seed % 2 == 0
+    gaussians, camera, background = random_scene(
+        100 + seed, 400, width, height, torch.float32, sh_degree
+    )
+    renderer = CpuReferenceConfig(antialiased=antialiased).build()
+
+    out = renderer(gaussians, camera, background)
+    ref = render_oracle(gaussians, camera, background, antialiased=antialiased)
+
+    assert out.rgb.dtype == torch.float32
+    # Where a threshold decision (α vs 1/255, T vs 1e-4) lies within float32 rounding of
+    # its threshold, either answer is right; such pixels are rare and are left out.
+    robust = ~ref.fragile
+    assert float(robust.float().mean()) > 0.99
+    for got, want in ((out.rgb, ref.rgb), (out.alpha, ref.alpha), (out.depth, ref.depth)):
+        assert _max_abs(got, want, robust) <= 1e-5
+    assert float(ref.alpha.mean()) > 0.2
+
+
+@pytest.mark.parametrize("spread", [1.5, 6.0])
+def test_scenes_around_and_behind_the_camera(spread: float) -> None:
+    """A wide spread puts Gaussians behind the camera, at the near plane and far off screen."""
+    gen = torch.Generator().manual_seed(7)
+    camera = random_camera(gen, 53, 41)
+    gaussians = random_gaussians(gen, 500, spread=spread)
+    background = torch.tensor([0.2, 0.4, 0.6], dtype=torch.float64)
+    out = CpuReferenceRenderer()(gaussians, camera, background)
+    ref = render_oracle(gaussians, camera, background)
+    for got, want in ((out.rgb, ref.rgb), (out.alpha, ref.alpha), (out.depth, ref.depth)):
+        assert _max_abs(got, want) <= 1e-9
+
+
+def test_output_shapes_and_screen_data() -> None:
+    gaussians, camera, background = random_scene(3, 200, 45, 29, torch.float32)
+    out = CpuReferenceRenderer()(gaussians, camera, background)
+    n = len(gaussians)
+    assert out.alpha.shape == (29, 45, 1) and out.depth.shape == (29, 45, 1)
+    assert out.means2d.shape == (n, 2) and out.radii.shape == (n, 2) and out.visible.shape == (n,)
+    assert bool((out.radii[~out.visible] == 0).all())
+    assert bool((out.radii[out.visible] > 0).all())
+
+
+# ---------------------------------------------------------------------------------------
+# Gradients
+
+
+def _tiny_scene(sh_degree: int | None, seed: int = 0) -> tuple[Gaussians, Camera, torch.Tensor]:
+    gen = torch.Generator().manual_seed(seed)
+    camera = Camera(22.0, 20.0, 9.3, 6.1, torch.eye(4, dtype=torch.float64), 19, 13)
+    n = 5
+    means = torch.rand(n, 3, generator=gen, dtype=torch.float64) * torch.tensor([1.2, 0.8, 1.0])
+    means = means + torch.tensor([-0.6, -0.4, 2.0])
+    quats = torch.randn(n, 4, generator=gen, dtype=torch.float64)
+    scales = 0.05 + 0.1 * torch.rand(n, 3, generator=gen, dtype=torch.float64)
+    opacities = 0.3 + 0.5 * torch.rand(n, generator=gen, dtype=torch.float64)
+    if sh_degree is None:
+        colors = torch.rand(n, 3, generator=gen, dtype=torch.float64)
+    else:
+        colors = 0.3 * torch.randn(n, (sh_degree + 1) ** 2, 3, generator=gen, dtype=torch.float64)
+    background = torch.tensor([0.1, 0.5, 0.9], dtype=torch.float64)
+    return Gaussians(means, quats, scales, opacities, colors, sh_degree), camera, background
+
+
+@pytest.mark.parametrize("sh_degree", [None, 3])
+@pytest.mark.parametrize("antialiased", [False, True])
+def test_gradcheck_gaussian_parameters(sh_degree: int | None, antialiased: bool) -> None:
+    base, camera, background = _tiny_scene(sh_degree)
+    renderer = CpuReferenceConfig(antialiased=antialiased, tile_size=8).build()
+    weights = torch.rand(camera.height, camera.width, 5, generator=torch.Generator().manual_seed(1),
+                         dtype=torch.float64)  # fmt: skip
+
+    def image(means, quats, scales, opacities, colors):  # type: ignore[no-untyped-def]
+        g = Gaussians(means, quats, scales, opacities, colors, sh_degree)
+        out = renderer(g, camera, background)
+        return (torch.cat((out.rgb, out.alpha, out.depth), -1) * weights).sum(-1)
+
+    inputs = tuple(
+        t.clone().requires_grad_(True)
+        for t in (base.means, base.quats, base.scales, base.opacities, base.colors)
+    )
+    assert torch.autograd.gradcheck(image, inputs, eps=1e-6, atol=1e-6, rtol=1e-4)
+
+
+def test_gradcheck_screen_space_means() -> None:
+    """The image as a function of the 2D means alone, the quantity densification reads."""
+    gaussians, camera, background = _tiny_scene(None, seed=2)
+    screen = project(gaussians, camera, Guards())
+    assert int(screen.visible.sum()) == len(gaussians)
+
+    def image(means2d: torch.Tensor) -> torch.Tensor:
+        moved = replace(screen, means2d=means2d)
+        rgb, alpha, depth = rasterize(moved, camera.width, camera.height, background, tile_size=8)
+        return torch.cat((rgb, alpha, depth), -1)
+
+    means2d = screen.means2d.detach().clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(image, (means2d,), eps=1e-6, atol=1e-6, rtol=1e-4)
+
+
+def test_means2d_receive_gradients() -> None:
+    gaussians, camera, background = random_scene(5, 200, 40, 30, torch.float32)
+    gaussians.means.requires_grad_(True)
+    out = CpuReferenceRenderer()(gaussians, camera, background)
+    out.rgb.sum().backward()
+    grad = out.means2d.grad
+    assert grad is not None and grad.shape == (len(gaussians), 2)
+    assert bool((grad[~out.visible] == 0).all())
+    assert float(grad[out.visible].abs().sum(-1).gt(0).float().mean()) > 0.5
+
+
+# ---------------------------------------------------------------------------------------
+# Hand-computed cases
+
+
+def _single(z: float, scale: float, opacity: float, color: list[float], dtype=torch.float64):  # type: ignore[no-untyped-def]
+    return Gaussians(
+        torch.tensor([[0.0, 0.0, z]], dtype=dtype),
+        torch.tensor([[1.0, 0.0, 0.0, 0.0]], dtype=dtype),
+        torch.full((1, 3), scale, dtype=dtype),
+        torch.tensor([opacity], dtype=dtype),
+        torch.tensor([color], dtype=dtype),
+    )
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_one_gaussian_centred_on_a_pixel(dtype: torch.dtype) -> None:
+    # Centre on pixel (row 4, column 6): the principal point sits at that pixel's centre.
+    camera = Camera(50.0, 50.0, 6.5, 4.5, torch.eye(4, dtype=dtype), 13, 9)
+    g = _single(z=2.0, scale=0.04, opacity=0.7, color=[1.0, 0.5, 0.25], dtype=dtype)
+    background = torch.tensor([0.0, 0.0, 1.0], dtype=dtype)
+    out = CpuReferenceRenderer()(g, camera, background)
+
+    tol = 1e-12 if dtype == torch.float64 else 1e-6
+    assert abs(float(out.alpha[4, 6, 0]) - 0.7) < tol
+    expected = [0.7 * 1.0, 0.7 * 0.5, 0.7 * 0.25 + 0.3 * 1.0]
+    assert torch.allclose(
+        out.rgb[4, 6].double(), torch.tensor(expected, dtype=torch.float64), atol=tol
+    )
+    assert abs(float(out.depth[4, 6, 0]) - 2.0) < 1e-5
+    # One pixel to the right: σ² = (f·s/z)² + 0.3 = 1 + 0.3.
+    assert abs(float(out.alpha[4, 7, 0]) - 0.7 * math.exp(-0.5 / 1.3)) < tol
+    assert abs(float(out.alpha[5, 7, 0]) - 0.7 * math.exp(-1.0 / 1.3)) < tol
+    assert out.means2d[0].tolist() == pytest.approx([6.5, 4.5])
+
+
+def test_two_overlapping_gaussians_composite_in_depth_order() -> None:
+    camera = Camera(50.0, 50.0, 2.5, 2.5, torch.eye(4, dtype=torch.float64), 5, 5)
+    near = _single(z=2.0, scale=0.05, opacity=0.6, color=[1.0, 0.0, 0.0])
+    far = _single(z=3.0, scale=0.05, opacity=0.5, color=[0.0, 1.0, 0.0])
+    background = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    expected_rgb = torch.tensor([0.6, 0.4 * 0.5, 0.4 * 0.5], dtype=torch.float64)
+    expected_alpha = 0.6 + 0.4 * 0.5
+    expected_depth = (0.6 * 2.0 + 0.4 * 0.5 * 3.0) / expected_alpha
+    for first, second in ((near, far), (far, near)):  # input order must not matter
+        g = Gaussians(*(torch.cat((getattr(first, k), getattr(second, k))) for k in
+                        ("means", "quats", "scales", "opacities", "colors")))  # fmt: skip
+        out = CpuReferenceRenderer()(g, camera, background)
+        assert torch.allclose(out.rgb[2, 2], expected_rgb, atol=1e-12)
+        assert abs(float(out.alpha[2, 2, 0]) - expected_alpha) < 1e-12
+        assert abs(float(out.depth[2, 2, 0]) - expected_depth) < 1e-12
+
+
+def test_gaussian_behind_the_camera_draws_nothing_and_gets_no_gradient() -> None:
+    camera = Camera(50.0, 50.0, 8.0, 8.0, torch.eye(4, dtype=torch.float64), 16, 16)
+    g = _single(z=-2.0, scale=0.5, opacity=0.9, color=[1.0, 0.0, 0.0])
+    for name in ("means", "quats", "scales", "opacities", "colors"):
+        getattr(g, name).requires_grad_(True)
+    background = torch.tensor([0.3, 0.3, 0.3], dtype=torch.float64)
+    out = CpuReferenceRenderer()(g, camera, background)
+    assert bool((out.rgb == background).all())
+    assert bool((out.alpha == 0).all()) and bool((out.depth == 0).all())
+    assert not bool(out.visible[0]) and out.radii[0].tolist() == [0, 0]
+    (out.rgb.sum() + out.alpha.sum() + out.depth.sum()).backward()
+    for name in ("means", "quats", "scales", "opacities", "colors"):
+        grad = getattr(g, name).grad
+        assert grad is None or bool((grad == 0).all()), name
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_devices_and_dtypes(device: str, dtype: torch.dtype) -> None:
+    gaussians, camera, background = random_scene(11, 150, 33, 21, dtype, sh_degree=2)
+    moved = gaussians.to(device)
+    out = CpuReferenceRenderer()(moved, camera.to(device), background.to(device))
+    assert out.rgb.device.type == device and out.rgb.dtype == dtype
+    ref = render_oracle(gaussians, camera, background)
+    tol = 1e-9 if dtype == torch.float64 else 1e-5
+    assert _max_abs(out.rgb.cpu(), ref.rgb, ~ref.fragile) <= tol
