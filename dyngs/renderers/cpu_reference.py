@@ -31,14 +31,15 @@ from jaxtyping import Bool, Float, Int
 from torch import Tensor
 
 from dyngs.geometry import covariance_3d
+from dyngs.ops import gather
 from dyngs.renderers.base import Guards, RenderOutput
 from dyngs.sh import eval_sh
 from dyngs.types import Camera, Gaussians
 
 GEOMETRY_DTYPE = torch.float64
 
-# A padded slot's quadratic-form row: α = exp(-1e4) = 0, so it is skipped like any α < 1/255.
-_PAD_POWER = 1e4
+# A padded slot's exponent row: α = exp(-1e4) = 0, so it is skipped like any α < 1/255.
+_PAD_EXPONENT = -1e4
 # The extent is widened by this much (relative, then absolute in px) so that rounding
 # never leaves out a pixel whose α reaches the threshold; a wider extent costs a few
 # skipped pairs and never changes the image.
@@ -50,11 +51,12 @@ _EXTENT_ABSOLUTE_MARGIN = 1e-3
 class CpuReferenceConfig:
     """The pure-PyTorch tile rasterizer (any device, float32 or float64)."""
 
-    tile_size: int = 16
-    """Tile edge in pixels; Gaussians are binned and depth-sorted per tile."""
+    tile_size: int = 8
+    """Tile edge in pixels; Gaussians are binned and depth-sorted per tile. The image does not
+    depend on it; 8 is fastest on CPUs (docs/RENDERER.md), CUDA rasterizers use 16."""
     antialiased: bool = False
     """Mip-Splatting's 2D filter: scale opacity by √(det Σ / det(Σ + 0.3 I)) (Yu et al. 2024)."""
-    chunk_elements: int = 1 << 22
+    chunk_elements: int = 1 << 20
     """Gaussian–pixel pairs composited per chunk; bounds the size of each temporary."""
 
     def build(self) -> CpuReferenceRenderer:
@@ -241,15 +243,16 @@ def _tile_pixel_basis(tile_size: int, device: torch.device) -> Float[Tensor, "P 
     return torch.stack((px * px, px * py, py * py, px, py, torch.ones_like(px)), dim=-1)
 
 
-def _quadratic_rows(
+def _exponent_rows(
     means: Float[Tensor, "C K 2"], conics: Float[Tensor, "C K 3"], log_opacity: Float[Tensor, "C K"]
 ) -> Float[Tensor, "C K 6"]:
-    """Coefficients ψ with ψ · (x², xy, y², x, y, 1) = ½ (p − m)ᵀ Q (p − m) − ln o."""
+    """Coefficients ψ with ψ · (x², xy, y², x, y, 1) = ln o − ½ (p − m)ᵀ Q (p − m), the log
+    of the unclamped α of a pixel p (negated here, so compositing starts with one exp)."""
     mx, my = means.unbind(-1)
     a, b, c = conics.unbind(-1)
     qx, qy = a * mx + b * my, b * mx + c * my
-    const = 0.5 * (mx * qx + my * qy) - log_opacity
-    return torch.stack((0.5 * a, b, 0.5 * c, -qx, -qy, const), dim=-1)
+    const = log_opacity - 0.5 * (mx * qx + my * qy)
+    return torch.stack((-0.5 * a, -b, -0.5 * c, qx, qy, const), dim=-1)
 
 
 def rasterize(
@@ -258,8 +261,8 @@ def rasterize(
     height: int,
     background: Float[Tensor, 3],
     guards: Guards | None = None,
-    tile_size: int = 16,
-    chunk_elements: int = 1 << 22,
+    tile_size: int = 8,
+    chunk_elements: int = 1 << 20,
 ) -> tuple[Float[Tensor, "H W 3"], Float[Tensor, "H W 1"], Float[Tensor, "H W 1"]]:
     """Composite projected Gaussians front to back; returns rgb, alpha and expected depth."""
     guards = guards or Guards()
@@ -280,7 +283,7 @@ def rasterize(
     basis = _tile_pixel_basis(tile_size, device)
     log_opacity = screen.opacities.clamp_min(1e-30).log()
     pad_row = torch.zeros(6, dtype=GEOMETRY_DTYPE, device=device)
-    pad_row[5] = _PAD_POWER
+    pad_row[5] = _PAD_EXPONENT
 
     tiles = torch.argsort(bins.tile_count, descending=True, stable=True)
     counts = bins.tile_count[tiles].tolist()
@@ -344,19 +347,21 @@ def _composite_chunk(
         )
         + tile_size / 2
     )
-    rows = _quadratic_rows(
-        screen.means2d[gid] - centre[:, None], screen.conics[gid], log_opacity[gid]
+    rows = _exponent_rows(
+        gather(screen.means2d, gid) - centre[:, None],
+        gather(screen.conics, gid),
+        gather(log_opacity, gid),
     )
     rows = torch.where(real[..., None], rows, pad_row)
     # Pixels × Gaussians with Gaussians last: the scan along depth then runs over
     # contiguous memory, several times faster than along a middle dimension.
-    power = (basis @ rows.transpose(1, 2)).to(blended.dtype)  # [C, P, K]: ½ dᵀQd − ln o
+    exponent = (basis @ rows.transpose(1, 2)).to(blended.dtype)  # [C, P, K]: ln o − ½ dᵀQd
 
-    alpha = torch.exp(-power).clamp_max(guards.alpha_max)
+    alpha = torch.exp(exponent).clamp_max(guards.alpha_max)
     alpha = alpha.masked_fill(alpha < guards.alpha_min, 0)
     transmit = torch.cumprod(1 - alpha, dim=2)  # transmittance after each Gaussian
     before = torch.cat((torch.ones_like(transmit[..., :1]), transmit[..., :-1]), dim=2)
     # Transmittance only falls, so "stop before T would drop below the floor" is exactly
     # "drop every pair whose T after it is below the floor".
     weight = (alpha * before).masked_fill(transmit < guards.transmittance_min, 0)
-    return weight @ blended[gid]
+    return weight @ gather(blended, gid)

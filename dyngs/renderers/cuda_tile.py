@@ -1,0 +1,139 @@
+"""`cuda-tile`: the fast path on NVIDIA GPUs, with gsplat's tile rasterizer as the engine.
+
+Install with `pip install dyngs[cuda]`. Held to `cpu-reference` by the parity tests in
+tests/renderers/test_cuda_parity.py (skipped without a CUDA device).
+
+How our guards map onto gsplat (v1.4+):
+- near plane, far plane → `near_plane`, `far_plane`; 0.3 px² dilation → `eps2d`;
+  Mip-Splatting compensation → `rasterize_mode="antialiased"`.
+- α clamp: gsplat clamps α at 0.999 where we clamp at 0.99. Opacities are clamped to
+  0.99 before the call, so α ≤ 0.99 everywhere; the two rules then differ only for
+  Gaussians with opacity > 0.99, by at most 1 % of their α near their centre.
+- Extent: gsplat's per-axis radius is ceil(min(3.33, √(2 ln(255 o)))·σ) px, the same
+  opacity-aware ellipse bound as ours rounded up to whole pixels, so it never drops a
+  pixel with α ≥ 1/255 either.
+- Early stop: gsplat stops when T would fall to ≤ 1e-4 (we: < 1e-4); the two differ
+  only when T lands exactly on the threshold.
+- Non-finite parameters are culled here, as in the reference, before gsplat sees them.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+from dataclasses import dataclass
+
+import torch
+from jaxtyping import Float
+from torch import Tensor
+
+from dyngs.errors import UserError
+from dyngs.geometry import normalize_quaternion
+from dyngs.renderers.base import Guards, RenderOutput
+from dyngs.types import Camera, Gaussians
+
+
+class RendererUnavailable(UserError, RuntimeError):
+    """The chosen renderer cannot run on this machine (the message says what is missing)."""
+
+
+def cuda_tile_available() -> bool:
+    return torch.cuda.is_available() and importlib.util.find_spec("gsplat") is not None
+
+
+@dataclass(frozen=True)
+class CudaTileConfig:
+    """gsplat's CUDA tile rasterizer (needs an NVIDIA GPU and `pip install dyngs[cuda]`)."""
+
+    tile_size: int = 16
+    """Tile edge in pixels."""
+    antialiased: bool = False
+    """Mip-Splatting's 2D filter: scale opacity by √(det Σ / det(Σ + 0.3 I))."""
+    packed: bool = False
+    """gsplat's packed mode: less memory for large scenes, a little slower for small ones."""
+    absgrad: bool = True
+    """Also accumulate |∂L/∂means2d| per pixel (AbsGS), available to densification."""
+
+    def build(self) -> CudaTileRenderer:
+        return CudaTileRenderer(self)
+
+
+class CudaTileRenderer:
+    def __init__(self, config: CudaTileConfig | None = None, guards: Guards | None = None) -> None:
+        if not torch.cuda.is_available():
+            raise RendererUnavailable(
+                "renderer cuda-tile needs a CUDA device and none is available; "
+                "use renderer:cpu-reference"
+            )
+        if importlib.util.find_spec("gsplat") is None:
+            raise RendererUnavailable(
+                "renderer cuda-tile needs gsplat, which is not installed; "
+                "run `pip install dyngs[cuda]` or use renderer:cpu-reference"
+            )
+        from gsplat import rasterization
+
+        self._rasterization = rasterization
+        self.config = config or CudaTileConfig()
+        self.guards = guards or Guards()
+
+    def __call__(
+        self, gaussians: Gaussians, camera: Camera, background: Float[Tensor, " 3"]
+    ) -> RenderOutput:
+        g, guards = gaussians, self.guards
+        device = g.means.device
+        n = len(g)
+        used = g.colors if g.sh_degree is None else g.colors[:, : (g.sh_degree + 1) ** 2]
+        finite = torch.ones(n, dtype=torch.bool, device=device)
+        for t in (g.means, g.quats, g.scales, g.opacities, used):
+            finite &= torch.isfinite(t.reshape(n, -1)).all(dim=1)
+        keep = finite[:, None]
+        colors = torch.where(finite.view(-1, *[1] * (g.colors.ndim - 1)), g.colors, 0)
+        opacities = torch.where(finite, g.opacities, 0).clamp(0, guards.alpha_max)
+        K = torch.tensor(
+            [[camera.fx, 0.0, camera.cx], [0.0, camera.fy, camera.cy], [0.0, 0.0, 1.0]],
+            device=device,
+            dtype=g.means.dtype,
+        )
+        rgbd, alpha, meta = self._rasterization(
+            means=torch.where(keep, g.means, 0),
+            quats=normalize_quaternion(torch.where(keep, g.quats, 0), guards.quat_eps),
+            scales=torch.where(keep, g.scales, 0),
+            opacities=opacities,
+            colors=colors,
+            viewmats=camera.world_to_camera.to(device=device, dtype=g.means.dtype)[None],
+            Ks=K[None],
+            width=camera.width,
+            height=camera.height,
+            near_plane=camera.near,
+            far_plane=camera.far,
+            eps2d=guards.eps2d,
+            sh_degree=g.sh_degree,
+            packed=self.config.packed,
+            tile_size=self.config.tile_size,
+            backgrounds=background.to(device=device, dtype=g.means.dtype)[None],
+            render_mode="RGB+ED",
+            absgrad=self.config.absgrad,
+            rasterize_mode="antialiased" if self.config.antialiased else "classic",
+        )
+        means2d = meta["means2d"]
+        radii = meta["radii"]
+        if self.config.packed:
+            # Packed mode lists only the drawn Gaussians; scatter back to one row each.
+            ids = meta["gaussian_ids"]
+            full = means2d.new_zeros(n, 2).index_copy(0, ids, means2d)
+            full_radii = radii.new_zeros(n, *radii.shape[1:]).index_copy(0, ids, radii)
+            means2d_out, radii = full, full_radii
+        else:
+            means2d_out, radii = means2d[0], radii[0]
+        if radii.ndim == 1:  # gsplat < 1.5 returns one radius per Gaussian
+            radii = radii[:, None].expand(-1, 2)
+        if means2d_out.requires_grad:
+            means2d_out.retain_grad()
+        visible = (radii > 0).all(dim=-1) & finite
+        return RenderOutput(
+            rgb=rgbd[0, ..., :3],
+            alpha=alpha[0],
+            depth=rgbd[0, ..., 3:4],
+            means2d=means2d_out,
+            radii=radii.int(),
+            visible=visible,
+        )
