@@ -160,3 +160,39 @@ class Gaussians:
             move(self.colors),
             self.sh_degree,
         )
+
+
+@dataclass(frozen=True)
+class SceneBox:
+    """An axis-aligned box holding the scene; fields normalise space by it to [-1, 1]."""
+
+    lower: tuple[float, float, float]
+    upper: tuple[float, float, float]
+
+    def __post_init__(self) -> None:
+        if not all(math.isfinite(v) for v in (*self.lower, *self.upper)):
+            raise ValueError(f"scene box must be finite, got {self.lower}..{self.upper}")
+        if not all(hi > lo for lo, hi in zip(self.lower, self.upper, strict=True)):
+            raise ValueError(
+                f"scene box needs upper > lower on every axis, got {self.lower}..{self.upper}"
+            )
+
+    @property
+    def center(self) -> tuple[float, float, float]:
+        lo, hi = self.lower, self.upper
+        return (0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1]), 0.5 * (lo[2] + hi[2]))
+
+    @property
+    def size(self) -> tuple[float, float, float]:
+        lo, hi = self.lower, self.upper
+        return (hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2])
+
+    @property
+    def diagonal(self) -> float:
+        return math.sqrt(sum(s * s for s in self.size))
+
+    def normalize(self, xyz: Float[Tensor, "N 3"]) -> Float[Tensor, "N 3"]:
+        """Map the box to [-1, 1]³ (points outside land outside that range)."""
+        lower = xyz.new_tensor(self.lower)
+        upper = xyz.new_tensor(self.upper)
+        return (xyz - lower) / (upper - lower) * 2 - 1

@@ -1,0 +1,123 @@
+"""DataManager: epochs, reproducible shuffling, resuming; load_scene's format detection."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+from dyngs.datamanagers.base import DatasetError, SceneData, Split
+from dyngs.datamanagers.datamanager import DataConfig, DataManager, load_scene
+from dyngs.errors import ConfigError
+from dyngs.types import Camera, SceneBox
+from tests.datamanagers.fixtures import small_dataset
+
+
+def _split(count: int, offset: int = 0, masks: bool = False) -> Split:
+    cameras = [Camera.from_fov(1.0, 4, 3, torch.eye(4)) for _ in range(count)]
+    images = [torch.full((3, 4, 3), offset + i, dtype=torch.uint8) for i in range(count)]
+    return Split(
+        cameras,
+        torch.linspace(0, 1, count),
+        images,
+        [torch.full((3, 4, 1), 255, dtype=torch.uint8) for _ in range(count)] if masks else None,
+    )
+
+
+def _scene(num_train: int = 7) -> SceneData:
+    return SceneData(
+        name="toy",
+        train=_split(num_train, masks=True),
+        val=_split(2, offset=100),
+        test=_split(3, offset=200),
+        scene_box=SceneBox((-1, -1, -1), (1, 1, 1)),
+        points=torch.zeros(5, 3),
+        point_colors=None,
+        background=torch.ones(3),
+    )
+
+
+DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+
+
+def _manager(seed: int, cache_bytes: int = 2 << 30, device: str = "cpu") -> DataManager:
+    config = DataConfig(device_cache_bytes=cache_bytes)
+    generator = torch.Generator().manual_seed(seed)
+    return DataManager(_scene(), config, torch.device(device), generator)
+
+
+def _indices(manager: DataManager, count: int) -> list[int]:
+    return [manager.next_train().index for _ in range(count)]
+
+
+def test_each_epoch_serves_every_frame_once_in_a_new_order() -> None:
+    manager = _manager(0)
+    epochs = [_indices(manager, 7) for _ in range(4)]
+    assert all(sorted(epoch) == list(range(7)) for epoch in epochs)
+    assert len({tuple(epoch) for epoch in epochs}) == 4
+    assert manager.epoch == 3
+
+
+def test_order_is_reproducible_from_the_generator() -> None:
+    assert _indices(_manager(5), 30) == _indices(_manager(5), 30)
+    assert _indices(_manager(5), 30) != _indices(_manager(6), 30)
+
+
+def test_state_dict_resumes_the_same_sequence() -> None:
+    reference = _manager(1)
+    _indices(reference, 10)
+    state = reference.state_dict()
+    expected = _indices(reference, 20)
+    resumed = _manager(99)  # a different generator: the state alone decides
+    resumed.load_state_dict(state)
+    assert _indices(resumed, 20) == expected
+    with pytest.raises(ValueError, match="train views"):
+        DataManager(
+            _scene(num_train=4), DataConfig(), torch.device("cpu"), torch.Generator()
+        ).load_state_dict(state)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("cache_bytes", [2 << 30, 0])
+def test_batches_are_float_images_whether_cached_or_not(cache_bytes: int, device: str) -> None:
+    manager = _manager(0, cache_bytes, device)
+    batch = manager.next_train()
+    assert batch.image.dtype == torch.float32 and tuple(batch.image.shape) == (3, 4, 3)
+    assert batch.image.device.type == device
+    assert batch.camera.world_to_camera.device.type == device
+    expected = torch.full((3, 4, 3), batch.index / 255.0, device=device)
+    torch.testing.assert_close(batch.image, expected)
+    assert batch.mask is not None and bool((batch.mask == 1.0).all())
+    assert batch.time == pytest.approx(batch.index / 6)
+    val = list(manager.views("val"))
+    assert [b.index for b in val] == [0, 1] and val[1].image[0, 0, 0] == pytest.approx(101 / 255)
+    assert val[0].mask is None
+    assert manager.num_views("test") == 3
+    with pytest.raises(ValueError, match="unknown split"):
+        list(manager.views("validation"))
+
+
+def test_load_scene_detects_formats_and_explains_failures(tmp_path: Path) -> None:
+    scene = load_scene(small_dataset(tmp_path / "scene"), DataConfig(downscale=2))
+    assert len(scene.train) == 3 and scene.train.cameras[0].width == 4
+    with pytest.raises(DatasetError, match="does not exist"):
+        load_scene(tmp_path / "missing", DataConfig())
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(DatasetError, match=r"not a dataset folder.*transforms_train\.json"):
+        load_scene(tmp_path / "empty", DataConfig())
+
+
+def test_data_config_rejects_nonsense() -> None:
+    with pytest.raises(ConfigError, match="downscale"):
+        DataConfig(downscale=0)
+    with pytest.raises(ConfigError, match="background"):
+        DataConfig(background=(2.0, 0.0, 0.0))
+
+
+def test_demo_is_the_procedural_scene(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from dyngs.datamanagers import datamanager
+
+    folder = small_dataset(tmp_path / "scene")
+    monkeypatch.setattr(datamanager, "demo_path", lambda: folder)
+    assert len(load_scene("demo", DataConfig()).train) == 3
