@@ -1,0 +1,200 @@
+"""`field:hexplane`: six 2D feature planes per scale, sampled bilinearly and multiplied.
+
+Letters: N points, F feature channels per plane and scale, S scales, G planes of one shape
+sampled together, R resolution along a plane axis, T along time.
+
+The factorisation of 4D space-time into the six planes xy, xz, yz, xt, yt, zt is HexPlane
+(Cao & Johnson 2023) and K-Planes (Fridovich-Keil et al. 2023); the multi-scale layout,
+its defaults and the deformation road it feeds are 4D Gaussian Splatting (Wu et al. 2024).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from jaxtyping import Float
+from torch import Tensor, nn
+
+from dyngs.errors import ConfigError
+from dyngs.fields._common import space_time
+from dyngs.fields.base import PlaneGrids
+from dyngs.types import SceneBox
+
+PLANE_AXES: tuple[tuple[int, int], ...] = ((0, 1), (0, 2), (1, 2), (0, 3), (1, 3), (2, 3))
+"""The coordinate pair (a, b) of each plane in canonical order xy, xz, yz, xt, yt, zt, with
+axes 0, 1, 2, 3 = x, y, z, t. Plane (a, b) is stored [F, R_b, R_a]: a runs along dim -1
+(grid_sample's x) and b along dim -2, so time planes have time along dim -2."""
+_SPATIAL_PLANES = 3
+"""The first three planes of PLANE_AXES are spatial, the last three hold time."""
+
+
+@dataclass(frozen=True)
+class HexPlaneConfig:
+    """Multi-scale HexPlane / K-Planes feature field (4D Gaussian Splatting, Wu et al. 2024)."""
+
+    resolution: tuple[int, int, int, int] = (64, 64, 64, 25)
+    """Grid size along x, y, z and t at the coarsest scale (4DGaussians' default)."""
+    multires: tuple[int, ...] = (1, 2)
+    """Spatial resolution multiplier of each scale (4DGaussians' D-NeRF preset); time is never
+    multiplied (Wu et al. 2024)."""
+    features: int = 32
+    """Feature channels per plane and scale; the field outputs features × len(multires)."""
+    init_range: tuple[float, float] = (0.1, 0.5)
+    """Spatial planes start uniform in this range (K-Planes); time planes start at exactly 1."""
+
+    def __post_init__(self) -> None:
+        if len(self.resolution) != 4 or any(r < 1 for r in self.resolution):
+            raise ConfigError(f"--field.resolution must be 4 positive sizes, got {self.resolution}")
+        if not self.multires or any(m < 1 for m in self.multires):
+            raise ConfigError(f"--field.multires must be positive multipliers, got {self.multires}")
+        if self.features < 1:
+            raise ConfigError(f"--field.features must be positive, got {self.features}")
+        low, high = self.init_range
+        if not (math.isfinite(low) and math.isfinite(high) and low <= high):
+            raise ConfigError(
+                f"--field.init-range must be finite with low ≤ high, got {low}, {high}"
+            )
+
+    def build(self, box: SceneBox, *, generator: torch.Generator | None = None) -> HexPlaneField:
+        return HexPlaneField(self, box, generator=generator)
+
+
+class HexPlaneField(nn.Module):
+    """Features of (x, y, z, t) from six learnable planes per scale.
+
+    Each scale holds the three spatial planes xy, xz, yz and the three time planes xt, yt,
+    zt. A point is normalised by the scene box to [-1, 1]³ and its time t ∈ [0, 1] to
+    2t − 1; each plane is sampled bilinearly at the point's two coordinates
+    (`F.grid_sample`, align_corners=True, so -1 and 1 are the centres of the edge texels).
+
+    Combination, as in K-Planes (Fridovich-Keil et al. 2023): within a scale the six sampled
+    F-vectors are multiplied elementwise (Hadamard product); the S scales' products are
+    concatenated, so `out_dim = F · S`. Multiplying rather than adding lets one plane gate
+    the others (a time plane can switch a feature off at some times in one region only),
+    which K-Planes found markedly better for the same parameter count.
+
+    Initialisation: spatial planes uniform in `init_range`, time planes exactly 1 (K-Planes,
+    kept by 4DGaussians). Since 1 is the identity of the product, a fresh field gives the
+    purely spatial (static) feature xy·xz·yz at every t: "static" is the starting point,
+    and whatever the field learns about motion is the time planes' departure from 1 —
+    exactly what the temporal regularizers (smoothness along t, and the K-Planes penalty
+    on |1 − plane|) look at.
+
+    Out of range: coordinates are clamped to [-1, 1] before sampling, so a point outside
+    the box (or a time outside [0, 1]) gets the feature of the nearest point on the box
+    (or of the nearest end of time), stays finite, and has zero gradient along the clamped
+    axis — like K-Planes' border padding, stated explicitly.
+
+    Storage: the spatial (or time) planes of one scale that share a shape are one
+    [G, F, R_b, R_a] Parameter, sampled with one batched `grid_sample` call (at the
+    defaults, two calls per scale: three 64×64 spatial planes, three 25×64 time planes).
+    `planes()` returns views of those Parameters, so regularizer gradients reach them.
+    Time planes are sampled as 1 + interp(plane − 1), which makes a plane of exactly 1
+    give exactly 1 (see `forward`).
+    """
+
+    out_dim: int
+
+    def __init__(
+        self,
+        config: HexPlaneConfig,
+        box: SceneBox,
+        *,
+        generator: torch.Generator | None = None,
+    ) -> None:
+        super().__init__()
+        self.config = config
+        self.box = box
+        self.out_dim = config.features * len(config.multires)
+
+        low, high = config.init_range
+        self.grids = nn.ParameterList()
+        # Per scale, per group: the group's index in `grids`, the name of the buffer holding
+        # its coordinate columns [a0, b0, a1, b1, ...], and whether it holds time planes.
+        self._groups: list[list[tuple[int, str, bool]]] = []
+        # Per scale, per canonical plane: (group index in `grids`, position in the group).
+        self._where: list[list[tuple[int, int]]] = []
+        for multiplier in config.multires:
+            rx, ry, rz, rt = config.resolution
+            res = (rx * multiplier, ry * multiplier, rz * multiplier, rt)
+            # Spatial and time planes never share a group (time planes are sampled as
+            # departures from 1); spatial groups come first, so the spatial product is
+            # formed before it meets the time planes.
+            by_kind_shape: dict[tuple[bool, int, int], list[int]] = {}
+            for plane, (a, b) in enumerate(PLANE_AXES):
+                key = (plane >= _SPATIAL_PLANES, res[b], res[a])
+                by_kind_shape.setdefault(key, []).append(plane)
+            where: dict[int, tuple[int, int]] = {}
+            groups: list[tuple[int, str, bool]] = []
+            for (is_time, *shape), members in by_kind_shape.items():
+                data = torch.empty(len(members), config.features, *shape)
+                if is_time:
+                    data.fill_(1.0)
+                else:
+                    data.uniform_(low, high, generator=generator)
+                for slot, plane in enumerate(members):
+                    where[plane] = (len(self.grids), slot)
+                columns = [axis for plane in members for axis in PLANE_AXES[plane]]
+                name = f"columns{len(self.grids)}"
+                self.register_buffer(name, torch.tensor(columns), persistent=False)
+                groups.append((len(self.grids), name, is_time))
+                self.grids.append(nn.Parameter(data))
+            self._groups.append(groups)
+            self._where.append([where[plane] for plane in range(len(PLANE_AXES))])
+
+    def normalize(self, xyz: Float[Tensor, "N 3"], t: Float[Tensor, "N 1"]) -> Float[Tensor, "N 4"]:
+        """Grid coordinates (x, y, z, t): box-normalised space and 2t − 1, clamped to [-1, 1]."""
+        return space_time(self.box, xyz, t).clamp(-1.0, 1.0)
+
+    def forward(self, xyz: Float[Tensor, "N 3"], t: Float[Tensor, "N 1"]) -> Float[Tensor, "N F"]:
+        coords = self.normalize(xyz, t)
+        n = coords.shape[0]
+        scales: list[Tensor] = []
+        for groups in self._groups:
+            product: Tensor | None = None
+            for index, name, is_time in groups:
+                param = self.grids[index]
+                g = param.shape[0]
+                columns = self.get_buffer(name)
+                # [N, 2G] -> [G, 1, N, 2]: plane i of the group reads columns (a_i, b_i).
+                grid = coords.index_select(1, columns).view(n, g, 2).transpose(0, 1).unsqueeze(1)
+                if is_time:
+                    # 1 + interp(plane − 1), equal to interp(plane) in exact arithmetic. The
+                    # four bilinear weights do not sum to exactly 1 in floating point, so a
+                    # plane of ones sampled directly gives 1 ± 1 ulp, varying with t; this
+                    # form gives exactly 1, so the static start is exact, and small departures
+                    # from 1 keep their full relative precision.
+                    sampled = F.grid_sample(
+                        param - 1.0, grid, "bilinear", "border", align_corners=True
+                    ).add_(1.0)
+                else:
+                    sampled = F.grid_sample(param, grid, "bilinear", "border", align_corners=True)
+                # sampled: [G, F, 1, N]. unbind, not indexing: its backward stacks the G
+                # gradients once instead of zero-filling a [G, F, 1, N] tensor per plane.
+                for part in sampled.unbind(0):
+                    product = part if product is None else product * part
+            assert product is not None  # every scale has six planes
+            scales.append(product.view(self.config.features, n).t())
+        # S × [N, F] (transposed views) -> [N, S·F], one copy.
+        return torch.cat(scales, dim=1)
+
+    def planes(self) -> PlaneGrids:
+        """Views of the planes: spatial [F, R_b, R_a] in order xy, xz, yz and temporal
+        [F, T, R] in order xt, yt, zt, scale after scale (coarsest first)."""
+        spatial: list[Tensor] = []
+        temporal: list[Tensor] = []
+        for where in self._where:
+            for plane, (index, slot) in enumerate(where):
+                view = self.grids[index][slot]
+                (spatial if plane < _SPATIAL_PLANES else temporal).append(view)
+        return PlaneGrids(spatial=spatial, temporal=temporal)
+
+    def extra_repr(self) -> str:
+        c = self.config
+        return (
+            f"resolution={c.resolution}, multires={c.multires}, features={c.features}, "
+            f"out_dim={self.out_dim}"
+        )
