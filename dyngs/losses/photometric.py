@@ -1,0 +1,145 @@
+"""Photometric losses: L1, D-SSIM and their blend (Kerbl et al. 2023).
+
+Letters: H×W image, C channels (3 for RGB). Images are float HWC in [0, 1]; a mask is
+[H, W, 1] (or [H, W]), bool or float, and turns every mean into a mean over the masked
+pixels (a soft mask weights them).
+
+Which SSIM. `ssim_map` is `kornia.metrics.ssim`: a Gaussian window (σ = 1.5 whatever its
+size), c1 = (0.01)², c2 = (0.03)² for data range 1, with kornia's `eps` set to 0 so that
+SSIM(x, x) is exactly 1 even for flat images (its default 1e-12 makes two black images
+score 0.99998889). The loss uses D-SSIM = 1 − SSIM, as 3D Gaussian Splatting does, so
+that its λ = 0.2 carries over; `kornia.losses.ssim_loss` is (1 − SSIM) / 2, clamped, which
+would silently halve the weight. The training map is 'same' size with reflect padding;
+the evaluation metric (`dyngs.metrics.ssim`) uses the 'valid' map instead.
+
+Images smaller than the window. kornia's reflect padding needs H and W larger than half
+the window, and a 'valid' map needs H and W at least the window. Rather than crash, the
+window shrinks to the largest odd size that fits (down to 1 for a 1×1 image, where SSIM
+reduces to its luminance term, finite for any pair of constants because c1 > 0).
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import torch
+from jaxtyping import Float
+from kornia.metrics import ssim as _kornia_ssim
+from torch import Tensor
+
+DSSIM_WEIGHT = 0.2
+"""λ in (1 − λ)·L1 + λ·D-SSIM, as in 3D Gaussian Splatting (Kerbl et al. 2023)."""
+
+SSIM_WINDOW = 11
+"""Window size of standard SSIM (Wang et al. 2004): 11×11 Gaussian, σ = 1.5."""
+
+Padding = Literal["same", "valid"]
+
+
+def _check_pair(pred: Tensor, target: Tensor) -> None:
+    if pred.shape != target.shape or pred.ndim != 3:
+        raise ValueError(
+            f"images must both be [H, W, C], got {tuple(pred.shape)} and {tuple(target.shape)}"
+        )
+
+
+def _mask_weights(mask: Tensor, like: Tensor) -> Float[Tensor, "H W 1"]:
+    """The mask as float weights [H, W, 1] in `like`'s dtype and device."""
+    if mask.ndim == 2:
+        mask = mask[..., None]
+    if mask.shape != (*like.shape[:2], 1):
+        raise ValueError(
+            f"mask must be [H, W, 1] for images {tuple(like.shape)}, got {tuple(mask.shape)}"
+        )
+    return mask.to(device=like.device, dtype=like.dtype)
+
+
+def _masked_mean(values: Float[Tensor, "H W C"], mask: Tensor | None) -> Float[Tensor, ""]:
+    """Mean over all elements, or over the masked pixels (weights broadcast over C).
+
+    An empty mask gives 0 (with a zero gradient), not 0/0.
+    """
+    if mask is None:
+        return values.mean()
+    weights = _mask_weights(mask, values)
+    total = (values * weights).sum()
+    count = weights.sum() * values.shape[-1]
+    # count is 0 only for an empty mask, and then total is 0 too: 0 / tiny = 0.
+    return total / count.clamp_min(torch.finfo(values.dtype).tiny)
+
+
+def fit_window(window_size: int, height: int, width: int, padding: Padding = "same") -> int:
+    """The largest odd window ≤ `window_size` that kornia's SSIM accepts for H×W.
+
+    'same' reflects half a window into the image, so it needs window // 2 < min(H, W);
+    'valid' needs window ≤ min(H, W).
+    """
+    if window_size < 1 or window_size % 2 == 0:
+        raise ValueError(f"SSIM window size must be odd and positive, got {window_size}")
+    side = min(height, width)
+    largest = 2 * side - 1 if padding == "same" else side
+    window = min(window_size, largest)
+    return window if window % 2 == 1 else window - 1
+
+
+def ssim_map(
+    pred: Float[Tensor, "H W C"],
+    target: Float[Tensor, "H W C"],
+    window_size: int = SSIM_WINDOW,
+    padding: Padding = "same",
+) -> Float[Tensor, "h w C"]:
+    """Per-pixel, per-channel SSIM (kornia, Gaussian σ = 1.5, data range 1, eps 0).
+
+    'same' keeps H×W; 'valid' drops half a window on every side (h = H − window + 1).
+    The window shrinks to fit small images (see the module docstring).
+    """
+    _check_pair(pred, target)
+    window = fit_window(window_size, pred.shape[0], pred.shape[1], padding)
+    a = pred.permute(2, 0, 1)[None]
+    b = target.permute(2, 0, 1)[None]
+    # eps = 0: SSIM's own c1, c2 already keep the denominator ≥ c1·c2 > 0 (up to a
+    # rounding of the variances that is far below c2 = 9e-4).
+    out = _kornia_ssim(a, b, window, max_val=1.0, eps=0.0, padding=padding)
+    return out[0].permute(1, 2, 0)
+
+
+def l1(
+    pred: Float[Tensor, "H W C"],
+    target: Float[Tensor, "H W C"],
+    mask: Tensor | None = None,
+) -> Float[Tensor, ""]:
+    """Mean absolute error, over all pixels or over the masked ones."""
+    _check_pair(pred, target)
+    return _masked_mean((pred - target).abs(), mask)
+
+
+def dssim(
+    pred: Float[Tensor, "H W C"],
+    target: Float[Tensor, "H W C"],
+    window_size: int = SSIM_WINDOW,
+    mask: Tensor | None = None,
+) -> Float[Tensor, ""]:
+    """D-SSIM = 1 − mean SSIM, in [0, 2]; with a mask the SSIM map is weighted by it.
+
+    The masked version still filters across the mask edge (the window sees unmasked
+    neighbours); only the averaging is restricted.
+    """
+    return _masked_mean(1.0 - ssim_map(pred, target, window_size), mask)
+
+
+def photometric(
+    pred: Float[Tensor, "H W C"],
+    target: Float[Tensor, "H W C"],
+    dssim_weight: float = DSSIM_WEIGHT,
+    mask: Tensor | None = None,
+) -> Float[Tensor, ""]:
+    """(1 − λ)·L1 + λ·D-SSIM (Kerbl et al. 2023, λ = 0.2); a term of weight 0 is skipped."""
+    if not 0.0 <= dssim_weight <= 1.0:
+        raise ValueError(f"dssim_weight must lie in [0, 1], got {dssim_weight}")
+    if dssim_weight == 0.0:
+        return l1(pred, target, mask)
+    if dssim_weight == 1.0:
+        return dssim(pred, target, mask=mask)
+    return (1.0 - dssim_weight) * l1(pred, target, mask) + dssim_weight * dssim(
+        pred, target, mask=mask
+    )
