@@ -1,0 +1,107 @@
+"""The training config: one frozen dataclass composing every component's config.
+
+Each component config builds its component (`build(...)`); swappable parts are tagged
+unions the CLI offers as subcommands (`renderer:cpu-reference`, `field:mlp`, …). The
+docstring under each field is its `--help` text.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Union
+
+import tyro
+
+from dyngs.datamanagers.datamanager import DataConfig
+from dyngs.engine.densify import DensifyConfig
+from dyngs.engine.optim import OptimConfig
+from dyngs.errors import ConfigError
+from dyngs.fields.heads import DeformationHeadConfig
+from dyngs.fields.hexplane import HexPlaneConfig
+from dyngs.fields.mlp import MLPFieldConfig
+from dyngs.model import GaussianConfig
+from dyngs.renderers import CpuReferenceConfig, CudaTileConfig, RendererConfig
+
+FieldConfig = Union[  # noqa: UP007 (tyro reads the tags from this form)
+    Annotated[HexPlaneConfig, tyro.conf.subcommand("hexplane")],
+    Annotated[MLPFieldConfig, tyro.conf.subcommand("mlp")],
+]
+
+
+@dataclass(frozen=True)
+class LossConfig:
+    """Loss weights; a weight of 0 switches its term off and skips its computation.
+
+    The plane regularizers are means over planes (so a weight does not change meaning when
+    scales are added); the defaults equal 4D Gaussian Splatting's weights (Wu et al. 2024:
+    TV 1e-4, smoothness 1e-2, time L1 1e-4), which sum over its 2 scales × 3 planes and
+    double the TV, converted to that form.
+    """
+
+    dssim: float = 0.2
+    """Share of D-SSIM in the photometric loss, (1-λ)·L1 + λ·(1-SSIM) (Kerbl et al. 2023)."""
+    plane_tv: float = 1.2e-3
+    """Total variation of the spatial feature planes (K-Planes)."""
+    time_smoothness: float = 6e-2
+    """Second difference of the time planes along t (K-Planes)."""
+    time_l1: float = 6e-4
+    """L1 of the time planes toward 1, i.e. toward a static scene (K-Planes)."""
+    arap: float = 0.0
+    """Local rigidity: neighbour distances kept between the current and a random time."""
+    arap_neighbors: int = 8
+    """Canonical nearest neighbours per Gaussian for the rigidity term."""
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Train a dynamic Gaussian-splatting model on a scene."""
+
+    data: str = "demo"
+    """Dataset folder (D-NeRF/Blender format), or `demo` for the built-in procedural scene."""
+    output_dir: Path = Path("outputs")
+    """Runs are written to OUTPUT_DIR/RUN_NAME."""
+    run_name: str | None = None
+    """Folder name of this run (default: method, dataset and start time)."""
+    max_iters: int = 3000
+    """Training iterations, warm-up included."""
+    warmup_iters: int = 500
+    """Static warm-up: the canonical Gaussians alone are fitted for this many iterations."""
+    seed: int = 0
+    """Seeds every random choice (initialisation, view order, densification)."""
+    device: str = "auto"
+    """`auto` (CUDA when present), `cpu`, `cuda`, `cuda:1`, …"""
+    dataset: Annotated[DataConfig, tyro.conf.OmitArgPrefixes] = dataclasses.field(
+        default_factory=DataConfig
+    )
+    gaussians: GaussianConfig = dataclasses.field(default_factory=GaussianConfig)
+    field: FieldConfig = dataclasses.field(default_factory=HexPlaneConfig)
+    head: DeformationHeadConfig = dataclasses.field(default_factory=DeformationHeadConfig)
+    renderer: RendererConfig = dataclasses.field(default_factory=CpuReferenceConfig)
+    losses: LossConfig = dataclasses.field(default_factory=LossConfig)
+    optim: OptimConfig = dataclasses.field(default_factory=OptimConfig)
+    densify: DensifyConfig = dataclasses.field(default_factory=DensifyConfig)
+    log_every: int = 25
+    """Write scalars to TensorBoard every this many iterations."""
+    image_every: int = 500
+    """Write a rendered vs ground-truth image to TensorBoard every this many iterations."""
+    checkpoint_every: int = 500
+    """Save a checkpoint every this many iterations (and at the end, and on Ctrl-C)."""
+    tensorboard: bool = True
+    """Write TensorBoard event files into the run folder."""
+    eval_split: str = "test"
+    """Split evaluated at the end of training (metrics.json and images)."""
+    method: tyro.conf.Suppress[str] = "custom"
+    """Name of the preset this config came from (set by the CLI)."""
+
+    def __post_init__(self) -> None:
+        if self.max_iters < 0:
+            raise ConfigError(f"--max-iters must be ≥ 0, got {self.max_iters}")
+        if self.warmup_iters < 0:
+            raise ConfigError(f"--warmup-iters must be ≥ 0, got {self.warmup_iters}")
+        if self.eval_split not in ("train", "val", "test"):
+            raise ConfigError(f"--eval-split must be train, val or test, got {self.eval_split!r}")
+
+
+__all__ = ["CudaTileConfig", "FieldConfig", "LossConfig", "RendererConfig", "TrainConfig"]

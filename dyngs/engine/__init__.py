@@ -1,0 +1,1 @@
+"""The trainer loop, optimizers and schedules, densification, checkpoints and writers."""

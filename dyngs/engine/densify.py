@@ -1,0 +1,183 @@
+"""Adaptive density control of 3D Gaussian Splatting (Kerbl et al. 2023): clone small and
+split large Gaussians whose screen-space gradient is high, prune transparent or oversized
+ones, and periodically reset opacities.
+
+State is explicit (`DensifyState`), and every change of the Gaussian set is described by
+a `TopologyChange` that each owner of per-Gaussian data applies (parameters, optimizer
+moments, flags, neighbour lists).
+
+Letters: N Gaussians before a change, M after.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from jaxtyping import Bool, Float, Int
+from torch import Tensor
+
+from dyngs.engine.optim import replace_rows
+from dyngs.geometry import normalize_quaternion, quaternion_to_rotation
+from dyngs.model import GAUSSIAN_PARAMS, DynamicGaussians
+from dyngs.renderers.base import RenderOutput
+
+
+@dataclass(frozen=True)
+class DensifyConfig:
+    """When and how Gaussians are cloned, split and pruned."""
+
+    grad_threshold: float = 2e-4
+    """Densify Gaussians whose mean screen-space gradient (NDC units) exceeds this (3DGS)."""
+    refine_every: int = 100
+    """Iterations between densification steps."""
+    refine_start: int = 500
+    """First iteration that densifies."""
+    refine_stop: float = 0.5
+    """Stop densifying after this fraction of the run (3DGS: 15k of 30k)."""
+    reset_opacity_every: int = 3000
+    """Clamp every opacity to `reset_opacity` this often while densifying (0: never)."""
+    reset_opacity: float = 0.01
+    percent_dense: float = 0.01
+    """Gaussians larger than this fraction of the scene extent are split, smaller cloned."""
+    split_children: int = 2
+    split_shrink: float = 1.6
+    """Children of a split are this much smaller (3DGS: 0.8 × number of children)."""
+    prune_opacity: float = 0.005
+    """Prune Gaussians more transparent than this."""
+    prune_world_size: float = 0.1
+    """After the first opacity reset, prune Gaussians larger than this fraction of the extent."""
+    prune_screen_size: float = 20.0
+    """… or wider than this many pixels on screen."""
+    max_gaussians: int = 300_000
+    """Never densify beyond this many Gaussians (the highest gradients go first)."""
+
+
+@dataclass
+class TopologyChange:
+    """Row i of the new set came from row source[i] of the old one; `fresh` rows are new
+    Gaussians (clones, split children) rather than survivors."""
+
+    source: Int[Tensor, " M"]
+    fresh: Bool[Tensor, " M"]
+
+
+@dataclass
+class DensifyState:
+    grad_sum: Float[Tensor, " N"]
+    count: Float[Tensor, " N"]
+    max_radius: Float[Tensor, " N"]
+
+    @staticmethod
+    def zeros(n: int, device: torch.device) -> DensifyState:
+        return DensifyState(*(torch.zeros(n, device=device) for _ in range(3)))
+
+    def state_dict(self) -> dict[str, Tensor]:
+        return {"grad_sum": self.grad_sum, "count": self.count, "max_radius": self.max_radius}
+
+    @staticmethod
+    def from_state_dict(d: dict[str, Tensor]) -> DensifyState:
+        return DensifyState(d["grad_sum"], d["count"], d["max_radius"])
+
+
+def accumulate(state: DensifyState, out: RenderOutput, width: int, height: int) -> None:
+    """Add one view's screen-space gradients (call after backward)."""
+    grad = out.means2d.grad
+    if grad is None:
+        return
+    with torch.no_grad():
+        # 3DGS thresholds gradients of NDC coordinates; ours are per pixel.
+        scale = grad.new_tensor([0.5 * width, 0.5 * height])
+        norm = (grad * scale).norm(dim=-1).to(state.grad_sum.dtype)
+        seen = out.visible
+        state.grad_sum += torch.where(seen, norm, 0)
+        state.count += seen.to(state.count.dtype)
+        radius = out.radii.max(dim=-1).values.to(state.max_radius.dtype)
+        state.max_radius.copy_(torch.maximum(state.max_radius, torch.where(seen, radius, 0)))
+
+
+def is_refine_step(config: DensifyConfig, step: int, max_iters: int) -> bool:
+    stop = config.refine_stop * max_iters
+    return config.refine_start <= step <= stop and step % config.refine_every == 0 and step > 0
+
+
+def is_reset_step(config: DensifyConfig, step: int, max_iters: int) -> bool:
+    every = config.reset_opacity_every
+    return every > 0 and step > 0 and step % every == 0 and step <= config.refine_stop * max_iters
+
+
+def plan_refinement(
+    config: DensifyConfig,
+    model: DynamicGaussians,
+    state: DensifyState,
+    step: int,
+    extent: float,
+    generator: torch.Generator | None = None,
+) -> tuple[TopologyChange, dict[str, Tensor]] | None:
+    """Decide clones, splits and prunes; returns the change and the new raw parameters."""
+    c = model.canonical
+    with torch.no_grad():
+        n = len(c)
+        avg = state.grad_sum / state.count.clamp_min(1)
+        scale_max = c.log_scales.exp().max(dim=-1).values
+        prune = torch.sigmoid(c.opacity_logits) < config.prune_opacity
+        if config.reset_opacity_every > 0 and step > config.reset_opacity_every:
+            prune |= scale_max > config.prune_world_size * extent
+            prune |= state.max_radius > config.prune_screen_size
+        prune |= ~torch.isfinite(torch.cat([p.reshape(n, -1) for p in c.params().values()], 1)).all(
+            1
+        )
+        grow = (avg >= config.grad_threshold) & ~prune
+        # Respect the budget: each clone adds one, each split adds children - 1.
+        room = config.max_gaussians - (n - int(prune.sum()))
+        if room <= 0:
+            grow[:] = False
+        elif int(grow.sum()) > room // max(config.split_children - 1, 1):
+            keep = room // max(config.split_children - 1, 1)
+            top = torch.topk(torch.where(grow, avg, -1.0), keep).indices
+            grow[:] = False
+            grow[top] = True
+        small = scale_max <= config.percent_dense * extent
+        clone, split = grow & small, grow & ~small
+        if not (bool(prune.any()) or bool(clone.any()) or bool(split.any())):
+            return None
+
+        survivors = (~prune & ~split).nonzero().squeeze(1)
+        cloned = clone.nonzero().squeeze(1)
+        parents = split.nonzero().squeeze(1).repeat(config.split_children)
+        source = torch.cat((survivors, cloned, parents))
+        fresh = torch.zeros(len(source), dtype=torch.bool, device=source.device)
+        fresh[len(survivors) :] = True
+
+        values = {name: getattr(c, name).detach()[source].clone() for name in GAUSSIAN_PARAMS}
+        if len(parents):
+            # Children are drawn from the parent Gaussian and shrunk (3DGS).
+            children = slice(len(survivors) + len(cloned), len(source))
+            scales = c.log_scales.detach()[parents].exp()
+            rot = quaternion_to_rotation(normalize_quaternion(c.quats.detach()[parents]))
+            offset = torch.randn(scales.shape, generator=generator, device=scales.device) * scales
+            values["means"][children] += (rot @ offset[..., None]).squeeze(-1)
+            values["log_scales"][children] = (scales / config.split_shrink).log()
+    return TopologyChange(source, fresh), values
+
+
+def apply_topology(
+    model: DynamicGaussians,
+    optimizer: torch.optim.Optimizer,
+    change: TopologyChange,
+    values: dict[str, Tensor],
+) -> None:
+    """Make every owner of per-Gaussian data follow `change`: the parameters (replaced by
+    `values`), Adam's moments (rows moved, fresh rows zeroed) and the model's flags."""
+    old = model.canonical.params()
+    model.canonical.replace(values)
+    new = model.canonical.params()
+    for name in GAUSSIAN_PARAMS:
+        replace_rows(optimizer, old[name], new[name], change.source, change.fresh)
+    model.on_topology(change.source, change.fresh)
+
+
+def reset_opacity_logits(logits: Tensor, ceiling: float) -> Tensor:
+    """Opacity logits clamped so that no opacity exceeds `ceiling` (3DGS opacity reset)."""
+    return logits.clamp_max(math.log(ceiling / (1 - ceiling)))

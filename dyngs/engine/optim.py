@@ -1,0 +1,117 @@
+"""Adam with one parameter group per kind of parameter, each with its own exponentially
+decaying learning rate, and the row surgery that keeps Adam's state in step with the
+Gaussians when densification adds or removes some.
+
+Letters: N Gaussians before a topology change, M after.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from jaxtyping import Bool, Int
+from torch import Tensor, nn
+
+from dyngs.model import DynamicGaussians
+
+
+@dataclass(frozen=True)
+class OptimConfig:
+    """Learning rates: initial → final, decayed exponentially over the run.
+
+    Gaussian rates are those of 3D Gaussian Splatting (Kerbl et al. 2023); field rates
+    those of 4D Gaussian Splatting (Wu et al. 2024). Position rates are multiplied by the
+    scene's extent so they mean the same on any scene scale.
+    """
+
+    means: tuple[float, float] = (1.6e-4, 1.6e-6)
+    """Centres, in units of the scene extent."""
+    quats: float = 1e-3
+    log_scales: float = 5e-3
+    opacity_logits: float = 5e-2
+    sh_dc: float = 2.5e-3
+    sh_rest: float = 2.5e-3 / 20
+    grid: tuple[float, float] = (1.6e-3, 1.6e-5)
+    """Feature planes of a plane-based field."""
+    network: tuple[float, float] = (1.6e-4, 1.6e-6)
+    """MLP weights of the field and the deformation head."""
+    eps: float = 1e-15
+    """Adam's epsilon; 3DGS uses 1e-15 so tiny gradients still move parameters."""
+
+
+def _is_grid(param: nn.Parameter) -> bool:
+    """Feature grids (plane stacks) have three or more dimensions; weights and biases fewer."""
+    return param.ndim >= 3
+
+
+def build_optimizer(
+    model: DynamicGaussians, config: OptimConfig, extent: float
+) -> torch.optim.Adam:
+    """One Adam, one group per parameter kind; each group records its schedule."""
+    groups: list[dict] = []
+
+    def group(
+        name: str, params: list[nn.Parameter], start: float, end: float | None = None
+    ) -> None:
+        if params:
+            end = start if end is None else end
+            groups.append(
+                {"name": name, "params": params, "lr": start, "lr_start": start, "lr_end": end}
+            )
+
+    c = model.canonical
+    group("means", [c.means], config.means[0] * extent, config.means[1] * extent)
+    group("quats", [c.quats], config.quats)
+    group("log_scales", [c.log_scales], config.log_scales)
+    group("opacity_logits", [c.opacity_logits], config.opacity_logits)
+    group("sh_dc", [c.sh_dc], config.sh_dc)
+    group("sh_rest", [c.sh_rest], config.sh_rest)
+    deformation = [*model.field.parameters(), *model.head.parameters()]
+    group("grid", [p for p in deformation if _is_grid(p)], *config.grid)
+    group("network", [p for p in deformation if not _is_grid(p)], *config.network)
+    return torch.optim.Adam(groups, lr=0.0, eps=config.eps)
+
+
+def set_learning_rates(optimizer: torch.optim.Optimizer, progress: float) -> None:
+    """Log-linear interpolation from lr_start to lr_end as progress goes from 0 to 1."""
+    progress = min(max(progress, 0.0), 1.0)
+    for g in optimizer.param_groups:
+        start, end = g["lr_start"], g["lr_end"]
+        g["lr"] = (
+            start
+            if start == end
+            else math.exp((1 - progress) * math.log(start) + progress * math.log(end))
+        )
+
+
+def replace_rows(
+    optimizer: torch.optim.Optimizer,
+    old: nn.Parameter,
+    new: nn.Parameter,
+    source: Int[Tensor, " M"],
+    fresh: Bool[Tensor, " M"],
+) -> None:
+    """Point `optimizer` at `new` in place of `old`, whose rows were rearranged: row i of
+    `new` came from row source[i] of `old`. Adam's moments follow their rows; rows marked
+    `fresh` (new Gaussians from a clone or split) start from zero moments, as in 3DGS."""
+    for g in optimizer.param_groups:
+        for i, p in enumerate(g["params"]):
+            if p is not old:
+                continue
+            g["params"][i] = new
+            state = optimizer.state.pop(old, None)
+            if state:
+                for key, value in state.items():
+                    if (
+                        isinstance(value, Tensor)
+                        and value.ndim > 0
+                        and value.shape[0] == old.shape[0]
+                    ):
+                        moved = value[source].clone()
+                        moved[fresh] = 0
+                        state[key] = moved
+                optimizer.state[new] = state
+            return
+    raise KeyError("parameter is not in the optimizer")

@@ -1,0 +1,327 @@
+"""The training loop. `Trainer.train_step` is the whole of one step, in one place."""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+from torch import Tensor
+
+from dyngs.config import LossConfig, TrainConfig
+from dyngs.datamanagers.base import SceneData
+from dyngs.datamanagers.datamanager import DataManager, TrainBatch, load_scene
+from dyngs.engine.checkpoint import load_checkpoint, save_checkpoint
+from dyngs.engine.densify import (
+    DensifyState,
+    TopologyChange,
+    accumulate,
+    apply_topology,
+    is_refine_step,
+    is_reset_step,
+    plan_refinement,
+    reset_opacity_logits,
+)
+from dyngs.engine.evaluate import evaluate
+from dyngs.engine.optim import build_optimizer, set_learning_rates
+from dyngs.engine.writer import Writer
+from dyngs.errors import ConfigError
+from dyngs.fields.base import PlaneGrids
+from dyngs.losses.arap import arap_loss, knn, neighbor_weights
+from dyngs.losses.photometric import photometric
+from dyngs.losses.temporal import time_l1_to_static, time_smoothness
+from dyngs.losses.tv import plane_tv
+from dyngs.metrics import psnr
+from dyngs.model import CanonicalGaussians, DynamicGaussians
+from dyngs.renderers.base import RenderOutput
+
+CHECKPOINT_NAME = "checkpoint.pt"
+
+
+@contextmanager
+def native_convolutions() -> Iterator[None]:
+    """Run without oneDNN convolutions: ATen's own are faster for SSIM's small depthwise
+    kernels, and unlike oneDNN's their results do not depend on memory alignment."""
+    previous = torch._C._get_mkldnn_enabled()
+    torch._C._set_mkldnn_enabled(False)
+    try:
+        yield
+    finally:
+        torch._C._set_mkldnn_enabled(previous)
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    device = torch.device(name)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ConfigError(f"--device {name}: no CUDA device is available")
+    return device
+
+
+def camera_extent(scene: SceneData) -> float:
+    """Radius of the training cameras around their centroid, ×1.1 (3DGS's scene extent);
+    scales position learning rates and densification thresholds."""
+    centers = torch.stack([c.center.double() for c in scene.train.cameras])
+    radius = float((centers - centers.mean(0)).norm(dim=-1).max()) * 1.1
+    return radius if radius > 0 else scene.scene_box.diagonal / 2
+
+
+@dataclass
+class StepStats:
+    loss: Tensor
+    terms: dict[str, Tensor]
+    out: RenderOutput
+    batch: TrainBatch
+
+
+def regularization(weights: LossConfig, planes: PlaneGrids) -> dict[str, Tensor]:
+    """Plane regularizers (K-Planes); terms with weight 0 are not computed at all."""
+    terms: dict[str, Tensor] = {}
+    if weights.plane_tv > 0 and planes.spatial:
+        terms["plane_tv"] = weights.plane_tv * plane_tv(planes.spatial)
+    if weights.time_smoothness > 0 and planes.temporal:
+        terms["time_smoothness"] = weights.time_smoothness * time_smoothness(planes.temporal)
+    if weights.time_l1 > 0 and planes.temporal:
+        terms["time_l1"] = weights.time_l1 * time_l1_to_static(planes.temporal)
+    return terms
+
+
+class Trainer:
+    def __init__(
+        self,
+        config: TrainConfig,
+        run_dir: Path,
+        writer: Writer,
+        console: Console | None = None,
+        scene: SceneData | None = None,
+    ) -> None:
+        self.config = config
+        self.run_dir = run_dir
+        self.writer = writer
+        self.console = console or Console()
+        self.device = resolve_device(config.device)
+        torch.manual_seed(config.seed)
+        self.generator = torch.Generator().manual_seed(config.seed)
+
+        self.scene = scene or load_scene(config.data, config.dataset, seed=config.seed)
+        self.data = DataManager(self.scene, config.dataset, self.device, self.generator)
+        self.renderer = config.renderer.build()
+        self.background = self.scene.background.to(self.device, torch.float32)
+        self.extent = camera_extent(self.scene)
+
+        canonical = CanonicalGaussians.from_points(
+            self.scene.points, self.scene.point_colors, config.gaussians, self.generator
+        )
+        field = config.field.build(self.scene.scene_box, generator=self.generator)
+        head = config.head.build(field.out_dim, self.scene.scene_box, generator=self.generator)
+        self.model = DynamicGaussians(canonical, field, head, self.scene.scene_box).to(self.device)
+        self.optimizer = build_optimizer(self.model, config.optim, self.extent)
+        self.densify_state = DensifyState.zeros(len(canonical), self.device)
+        self._arap: tuple[Tensor, Tensor] | None = None
+        self.step = 0
+        self.train_seconds = 0.0
+
+    # ------------------------------------------------------------------ one step
+
+    def sh_degree(self, step: int) -> int:
+        g = self.config.gaussians
+        return min(g.sh_degree, step // max(g.sh_degree_interval, 1))
+
+    def deforming(self, step: int) -> bool:
+        return step >= self.config.warmup_iters
+
+    def train_step(self, step: int) -> StepStats:
+        with native_convolutions():
+            return self._train_step(step)
+
+    def _train_step(self, step: int) -> StepStats:
+        """One iteration: a view, a render, the losses, a gradient step, densification."""
+        cfg = self.config
+        set_learning_rates(self.optimizer, step / max(cfg.max_iters, 1))
+        batch = self.data.next_train()
+        deform = self.deforming(step)
+
+        gaussians = self.model.at(batch.time, self.sh_degree(step), deform=deform)
+        out = self.renderer(gaussians, batch.camera, self.background)
+
+        terms = {"photometric": photometric(out.rgb, batch.image, cfg.losses.dssim, batch.mask)}
+        if deform:
+            terms |= regularization(cfg.losses, self.model.field.planes())
+            if cfg.losses.arap > 0:
+                terms["arap"] = cfg.losses.arap * self.rigidity(gaussians.means, batch.time)
+        loss = torch.stack(list(terms.values())).sum()
+        loss.backward()
+
+        accumulate(self.densify_state, out, batch.camera.width, batch.camera.height)
+        self.optimizer.step()
+        self.optimizer.zero_grad(set_to_none=True)
+        self.refine(step + 1)
+        return StepStats(loss.detach(), {k: v.detach() for k, v in terms.items()}, out, batch)
+
+    def rigidity(self, means_now: Tensor, t: float) -> Tensor:
+        """Neighbour distances at time t against those at another random time."""
+        if self._arap is None:
+            with torch.no_grad():
+                canonical = self.model.canonical.means.detach()
+                neighbors = knn(canonical, self.config.losses.arap_neighbors)
+                d = (canonical[:, None] - canonical[neighbors]).norm(dim=-1)
+                weights = neighbor_weights(canonical, neighbors, float(d.mean()) + 1e-12)
+            self._arap = (neighbors, weights)
+        neighbors, weights = self._arap
+        other = float(torch.rand((), generator=self.generator))
+        with torch.no_grad():
+            means_other = self.model.at(other, 0, deform=True).means
+        return arap_loss(means_now, means_other, neighbors, weights)
+
+    # ------------------------------------------------------------ densification
+
+    def refine(self, step: int) -> None:
+        cfg = self.config
+        if is_refine_step(cfg.densify, step, cfg.max_iters):
+            plan = plan_refinement(
+                cfg.densify, self.model, self.densify_state, step, self.extent, self.generator
+            )
+            if plan is not None:
+                self.apply_topology(*plan)
+            self.densify_state = DensifyState.zeros(len(self.model.canonical), self.device)
+        if is_reset_step(cfg.densify, step, cfg.max_iters):
+            logits = self.model.canonical.opacity_logits
+            with torch.no_grad():
+                logits.copy_(reset_opacity_logits(logits, cfg.densify.reset_opacity))
+            for moment in self.optimizer.state.get(logits, {}).values():
+                if isinstance(moment, Tensor) and moment.ndim > 0:
+                    moment.zero_()
+
+    def apply_topology(self, change: TopologyChange, values: dict[str, Tensor]) -> None:
+        apply_topology(self.model, self.optimizer, change, values)
+        self._arap = None  # neighbours are recomputed on the new set
+
+    # --------------------------------------------------------------- the loop
+
+    def train(self) -> dict[str, Any]:
+        cfg = self.config
+        columns = (
+            TextColumn("[bold]train"),
+            BarColumn(),
+            MofNCompleteColumn(),
+            TextColumn("{task.fields[info]}"),
+            TimeRemainingColumn(),
+        )
+        info = ""
+        with Progress(*columns, console=self.console, transient=False) as progress:
+            task = progress.add_task("train", total=cfg.max_iters, completed=self.step, info=info)
+            window_start, window_steps = time.perf_counter(), 0
+            try:
+                while self.step < cfg.max_iters:
+                    started = time.perf_counter()
+                    stats = self.train_step(self.step)
+                    self.step += 1
+                    self.train_seconds += time.perf_counter() - started
+                    window_steps += 1
+                    if self.step % cfg.log_every == 0 or self.step == cfg.max_iters:
+                        rate = window_steps / max(time.perf_counter() - window_start, 1e-9)
+                        info = self.log(stats, rate)
+                        window_start, window_steps = time.perf_counter(), 0
+                    if cfg.image_every > 0 and self.step % cfg.image_every == 0:
+                        self.writer.image("train/render", stats.out.rgb, self.step)
+                        self.writer.image("train/ground_truth", stats.batch.image, self.step)
+                    if cfg.checkpoint_every > 0 and self.step % cfg.checkpoint_every == 0:
+                        self.save()
+                    progress.update(task, completed=self.step, info=info)
+            except KeyboardInterrupt:
+                self.save()
+                self.writer.flush()
+                self.console.print(
+                    f"[yellow]interrupted at step {self.step}; checkpoint saved in {self.run_dir}. "
+                    f"Resume with: dyngs-train --resume {self.run_dir}"
+                )
+                raise
+        self.save()
+        return self.evaluate()
+
+    def log(self, stats: StepStats, rate: float) -> str:
+        loss = float(stats.loss)
+        quality = float(psnr(stats.out.rgb.detach(), stats.batch.image))
+        n = len(self.model.canonical)
+        w = self.writer
+        w.scalar("train/loss", loss, self.step)
+        for name, value in stats.terms.items():
+            w.scalar(f"train/loss/{name}", float(value), self.step)
+        w.scalar("train/psnr", quality, self.step)
+        w.scalar("train/num_gaussians", n, self.step)
+        w.scalar("train/iterations_per_second", rate, self.step)
+        for group in self.optimizer.param_groups:
+            w.scalar(f"learning_rate/{group['name']}", group["lr"], self.step)
+        return f"loss {loss:.4f}  psnr {quality:5.2f}  gaussians {n:,}  {rate:.1f} it/s"
+
+    def evaluate(self) -> dict[str, Any]:
+        split = self.config.eval_split
+        metrics = evaluate(
+            self.model,
+            self.renderer,
+            self.data,
+            split,
+            sh_degree=self.sh_degree(self.step),
+            deform=self.deforming(self.step),
+            image_dir=self.run_dir / split,
+            device=self.device,
+            console=self.console,
+        )
+        metrics |= {
+            "num_gaussians": len(self.model.canonical),
+            "train_seconds": self.train_seconds,
+            "iterations": self.step,
+            "renderer": "cuda-tile"
+            if type(self.renderer).__name__.startswith("Cuda")
+            else "cpu-reference",
+            "device": str(self.device),
+        }
+        for key in ("psnr", "ssim", "lpips"):
+            value = metrics.get(key)
+            if value is not None and math.isfinite(value):
+                self.writer.scalar(f"{split}/{key}", value, self.step)
+        self.writer.flush()
+        return metrics
+
+    # ------------------------------------------------------------ checkpoints
+
+    def checkpoint_path(self) -> Path:
+        return self.run_dir / CHECKPOINT_NAME
+
+    def save(self) -> None:
+        save_checkpoint(
+            self.checkpoint_path(),
+            {
+                "step": self.step,
+                "train_seconds": self.train_seconds,
+                "model": self.model.state_dict(),
+                "optimizer": self.optimizer.state_dict(),
+                "densify": self.densify_state.state_dict(),
+                "data": self.data.state_dict(),
+                "generator": self.generator.get_state(),
+                "torch_rng": torch.get_rng_state(),
+            },
+        )
+
+    def load(self, path: Path) -> None:
+        state = load_checkpoint(path, self.device)
+        self.model.load_state_dict(state["model"])
+        # The parameters were replaced to fit the checkpoint's Gaussian count: rebuild the
+        # optimizer around them before restoring its moments.
+        self.optimizer = build_optimizer(self.model, self.config.optim, self.extent)
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.densify_state = DensifyState.from_state_dict(state["densify"])
+        self.data.load_state_dict(state["data"])
+        self.generator.set_state(state["generator"].cpu())
+        torch.set_rng_state(state["torch_rng"].cpu())
+        self.step = int(state["step"])
+        self.train_seconds = float(state["train_seconds"])
+        self._arap = None

@@ -1,0 +1,206 @@
+"""The 4D model: canonical Gaussians plus a deformation field and head.
+
+Letters: N Gaussians, K SH coefficients per channel, F field features.
+
+Raw parameters are unconstrained (log-scales, opacity logits, unnormalised quaternions,
+SH coefficients); `activate` is the one place where they become drawable Gaussians.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from jaxtyping import Bool, Float, Int
+from torch import Tensor, nn
+
+from dyngs.fields.base import Field
+from dyngs.fields.heads import DeformationHead, Deltas
+from dyngs.geometry import normalize_quaternion
+from dyngs.losses.arap import knn
+from dyngs.sh import num_sh_bases, rgb_to_sh0
+from dyngs.types import Gaussians, SceneBox
+
+# Names of the per-Gaussian parameters, in a fixed order (checkpoints, optimizer groups).
+GAUSSIAN_PARAMS = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
+
+
+@dataclass(frozen=True)
+class GaussianConfig:
+    """Canonical Gaussians: initialisation and colour model."""
+
+    sh_degree: int = 3
+    """Highest spherical-harmonic degree of the colour model."""
+    sh_degree_interval: int = 1000
+    """Raise the active SH degree by one every this many iterations (3DGS schedule)."""
+    init_opacity: float = 0.1
+    """Opacity of every initial Gaussian (Kerbl et al. 2023)."""
+    init_scale_neighbors: int = 3
+    """Initial scale: mean distance to this many nearest initial points (Kerbl et al. 2023)."""
+    max_init_points: int = 50_000
+    """Initial points beyond this many are subsampled (seeded)."""
+
+
+def _logit(p: float) -> float:
+    return math.log(p / (1 - p))
+
+
+class CanonicalGaussians(nn.Module):
+    """The Gaussians at rest, as raw learnable parameters."""
+
+    means: nn.Parameter
+    quats: nn.Parameter
+    log_scales: nn.Parameter
+    opacity_logits: nn.Parameter
+    sh_dc: nn.Parameter
+    sh_rest: nn.Parameter
+
+    def __init__(self, num: int, sh_degree: int) -> None:
+        super().__init__()
+        self.sh_degree = sh_degree
+        rest = num_sh_bases(sh_degree) - 1
+        self.means = nn.Parameter(torch.zeros(num, 3))
+        self.quats = nn.Parameter(torch.zeros(num, 4))
+        self.log_scales = nn.Parameter(torch.zeros(num, 3))
+        self.opacity_logits = nn.Parameter(torch.zeros(num))
+        self.sh_dc = nn.Parameter(torch.zeros(num, 1, 3))
+        self.sh_rest = nn.Parameter(torch.zeros(num, rest, 3))
+
+    def __len__(self) -> int:
+        return self.means.shape[0]
+
+    @classmethod
+    def from_points(
+        cls,
+        points: Float[Tensor, "P 3"],
+        colors: Float[Tensor, "P 3"] | None,
+        config: GaussianConfig,
+        generator: torch.Generator,
+    ) -> CanonicalGaussians:
+        if len(points) > config.max_init_points:
+            keep = torch.randperm(len(points), generator=generator)[: config.max_init_points]
+            points = points[keep]
+            colors = None if colors is None else colors[keep]
+        points = points.float()
+        model = cls(len(points), config.sh_degree)
+        k = min(config.init_scale_neighbors, max(len(points) - 1, 1))
+        with torch.no_grad():
+            model.means.copy_(points)
+            model.quats[:, 0] = 1.0
+            if len(points) > 1:
+                neighbors = knn(points, k)
+                dist = (points[:, None, :] - points[neighbors]).norm(dim=-1).mean(dim=-1)
+            else:
+                dist = torch.ones(len(points))
+            model.log_scales.copy_(dist.clamp_min(1e-7).log()[:, None].expand(-1, 3))
+            model.opacity_logits.fill_(_logit(config.init_opacity))
+            rgb = torch.full_like(points, 0.5) if colors is None else colors.float().clamp(0, 1)
+            model.sh_dc.copy_(rgb_to_sh0(rgb)[:, None, :])
+        return model
+
+    def params(self) -> dict[str, nn.Parameter]:
+        return {name: getattr(self, name) for name in GAUSSIAN_PARAMS}
+
+    def replace(self, values: dict[str, Tensor]) -> None:
+        """Swap every per-Gaussian parameter for a new tensor (after densification or on
+        loading a checkpoint with a different count)."""
+        for name in GAUSSIAN_PARAMS:
+            setattr(self, name, nn.Parameter(values[name].detach().contiguous()))
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):  # type: ignore[no-untyped-def]
+        # A checkpoint may hold any number of Gaussians: resize before copying.
+        shapes = {n: state_dict[prefix + n] for n in GAUSSIAN_PARAMS if prefix + n in state_dict}
+        if len(shapes) == len(GAUSSIAN_PARAMS):
+            self.replace({n: torch.empty_like(t) for n, t in shapes.items()})
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+
+def activate(
+    means: Tensor,
+    quats: Tensor,
+    log_scales: Tensor,
+    opacity_logits: Tensor,
+    sh: Float[Tensor, "N K 3"],
+    sh_degree: int,
+) -> Gaussians:
+    """Raw parameters → drawable Gaussians (the one place activations are applied)."""
+    return Gaussians(
+        means=means,
+        quats=normalize_quaternion(quats),
+        scales=log_scales.exp(),
+        opacities=torch.sigmoid(opacity_logits),
+        colors=sh[:, : num_sh_bases(sh_degree)],
+        sh_degree=sh_degree,
+    )
+
+
+class DynamicGaussians(nn.Module):
+    """Canonical Gaussians deformed over time by `head(field(μ, t))`.
+
+    `dynamic` marks the Gaussians that are deformed; the others are drawn from their
+    canonical parameters and never query the field.
+    """
+
+    dynamic: Tensor
+    field: Field
+
+    def __init__(
+        self,
+        canonical: CanonicalGaussians,
+        field: Field,
+        head: DeformationHead,
+        box: SceneBox,
+    ) -> None:
+        super().__init__()
+        self.canonical = canonical
+        self.field = field
+        self.head = head
+        self.box = box
+        self.register_buffer("dynamic", torch.ones(len(canonical), dtype=torch.bool))
+
+    def deltas(
+        self, t: float, index: Int[Tensor, " M"] | None = None
+    ) -> tuple[Deltas, Int[Tensor, " M"] | None]:
+        """Deformation of the Gaussians in `index` (default: every dynamic one) at time t."""
+        if not 0.0 <= t <= 1.0 or math.isnan(t):
+            raise ValueError(f"time must be in [0, 1], got {t}")
+        means = self.canonical.means
+        if index is None and not bool(self.dynamic.all()):
+            index = self.dynamic.nonzero().squeeze(1)
+        xyz = means if index is None else means.index_select(0, index)
+        times = xyz.new_full((len(xyz), 1), t)
+        return self.head(self.field(xyz, times)), index
+
+    def at(self, t: float, sh_degree: int, deform: bool = True) -> Gaussians:
+        """Drawable Gaussians at time t (canonical ones when `deform` is False)."""
+        c = self.canonical
+        means: Tensor = c.means
+        quats: Tensor = c.quats
+        log_scales: Tensor = c.log_scales
+        logits: Tensor = c.opacity_logits
+        sh_dc: Tensor = c.sh_dc
+        if deform:
+            d, index = self.deltas(t)
+
+            def add(base: Tensor, delta: Tensor | None) -> Tensor:
+                if delta is None:
+                    return base
+                return base + delta if index is None else base.index_add(0, index, delta)
+
+            means = add(means, d.means)
+            quats = add(quats, d.quats)
+            log_scales = add(log_scales, d.scales)
+            logits = add(logits, d.opacities)
+            sh_dc = add(sh_dc, None if d.colors is None else d.colors[:, None, :])
+        sh = torch.cat((sh_dc, c.sh_rest), dim=1)
+        return activate(means, quats, log_scales, logits, sh, sh_degree)
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):  # type: ignore[no-untyped-def]
+        if prefix + "dynamic" in state_dict:  # the checkpoint's Gaussian count
+            self.dynamic = torch.empty_like(state_dict[prefix + "dynamic"])
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+    def on_topology(self, source: Int[Tensor, " M"], fresh: Bool[Tensor, " M"]) -> None:
+        # New Gaussians inherit their source's dynamic flag.
+        self.dynamic = self.dynamic[source]

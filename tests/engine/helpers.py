@@ -1,0 +1,35 @@
+"""Small trainers on the built-in scene for engine tests."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any
+
+from dyngs.config import TrainConfig
+from dyngs.datamanagers.datamanager import DataConfig
+from dyngs.datamanagers.procedural import ProceduralSceneConfig, demo_path
+from dyngs.engine.trainer import Trainer
+from dyngs.engine.writer import NullWriter
+from dyngs.fields.hexplane import HexPlaneConfig
+
+# A small scene and a small field keep each step at a few milliseconds.
+TINY_SCENE = ProceduralSceneConfig(
+    resolution=32, num_times=6, views_per_time=2, num_test=3, num_val=2
+)
+
+
+def tiny_config(**overrides: Any) -> TrainConfig:
+    config = TrainConfig(
+        data=str(demo_path(TINY_SCENE)),
+        max_iters=20,
+        warmup_iters=2,
+        tensorboard=False,
+        field=HexPlaneConfig(resolution=(8, 8, 8, 4), multires=(1,), features=8),
+        dataset=DataConfig(num_random_points=500),
+    )
+    return dataclasses.replace(config, **overrides)
+
+
+def tiny_trainer(tmp_path: Path, **overrides: Any) -> Trainer:
+    return Trainer(tiny_config(**overrides), tmp_path, NullWriter())

@@ -1,0 +1,65 @@
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
+from dyngs.engine.densify import DensifyConfig, apply_topology, plan_refinement
+from dyngs.model import GAUSSIAN_PARAMS
+from tests.engine.helpers import tiny_trainer
+
+
+def _train_a_little(tmp_path: Path):  # type: ignore[no-untyped-def]
+    trainer = tiny_trainer(tmp_path)
+    for step in range(3):
+        trainer.train_step(step)
+    return trainer
+
+
+def test_clone_split_prune_keep_every_per_gaussian_tensor_in_step(tmp_path: Path) -> None:
+    trainer = _train_a_little(tmp_path)
+    model, state = trainer.model, trainer.densify_state
+    n = len(model.canonical)
+    # Fabricate gradient statistics: the first third clones or splits, one is transparent.
+    state.grad_sum[: n // 3] = 1.0
+    state.count[:] = 1.0
+    with torch.no_grad():
+        model.canonical.opacity_logits[-1] = -20.0
+        model.canonical.log_scales[0] = 5.0  # huge: must be split, not cloned
+    config = DensifyConfig(reset_opacity_every=0)
+    plan = plan_refinement(config, model, state, step=100, extent=trainer.extent)
+    assert plan is not None
+    change, values = plan
+    apply_topology(model, trainer.optimizer, change, values)
+
+    m = len(model.canonical)
+    assert m == len(change.source) and m > n
+    for name in GAUSSIAN_PARAMS:
+        param = getattr(model.canonical, name)
+        assert param.shape[0] == m
+        for moment in trainer.optimizer.state[param].values():
+            if moment.ndim > 0:
+                assert moment.shape[0] == m, name
+    assert model.dynamic.shape == (m,)
+    assert not bool((change.source == n - 1).any())  # the transparent one is gone
+    assert int((change.source == 0).sum()) == config.split_children  # the huge one was split
+    children = model.canonical.log_scales[change.source == 0]
+    assert torch.allclose(
+        children, torch.full_like(children, 5.0 - torch.log(torch.tensor(1.6)).item())
+    )
+    # Training goes on with the new set.
+    trainer.densify_state = type(state).zeros(m, trainer.device)
+    trainer.train_step(4)
+
+
+def test_budget_caps_growth(tmp_path: Path) -> None:
+    trainer = _train_a_little(tmp_path)
+    model, state = trainer.model, trainer.densify_state
+    n = len(model.canonical)
+    state.grad_sum[:] = torch.rand(n)
+    state.count[:] = 1.0
+    plan = plan_refinement(
+        DensifyConfig(max_gaussians=n + 10), model, state, step=100, extent=trainer.extent
+    )
+    assert plan is not None
+    assert len(plan[0].source) <= n + 10

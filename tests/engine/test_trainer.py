@@ -1,0 +1,116 @@
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+from dyngs.datamanagers.datamanager import DataConfig
+from dyngs.engine.trainer import Trainer
+from dyngs.engine.writer import NullWriter
+from dyngs.metrics import psnr
+from dyngs.model import GaussianConfig
+from tests.conftest import shared_scene
+from tests.engine.helpers import tiny_config, tiny_trainer
+
+
+def test_gradients_reach_every_parameter_group(tmp_path: Path) -> None:
+    # SH degree raised every step, so the higher coefficients are in play from step 1.
+    trainer = tiny_trainer(tmp_path, warmup_iters=0, gaussians=GaussianConfig(sh_degree_interval=1))
+    named = dict(trainer.model.named_parameters())
+    reached: set[str] = set()
+    for name, param in named.items():
+        param.register_hook(
+            lambda g, name=name: reached.add(name) if bool(g.abs().sum() > 0) else None
+        )
+    # The head's last layers start at zero, so its inner layers and the field first get a
+    # gradient on the second step.
+    for step in range(3):
+        trainer.train_step(step)
+    assert reached == set(named), set(named) - reached
+    assert any(n.startswith("field.grids") for n in reached)
+    assert any(n.startswith("head.") for n in reached)
+
+
+def test_step_zero_renders_the_canonical_scene(tmp_path: Path) -> None:
+    trainer = tiny_trainer(tmp_path)
+    deformed = trainer.model.at(0.37, 0, deform=True)
+    canonical = trainer.model.at(0.37, 0, deform=False)
+    for name in ("means", "quats", "scales", "opacities", "colors"):
+        assert torch.equal(getattr(deformed, name), getattr(canonical, name)), name
+
+
+def test_static_gaussians_never_query_the_field(tmp_path: Path) -> None:
+    trainer = tiny_trainer(tmp_path)
+    model = trainer.model
+    with torch.no_grad():
+        model.head.means[-1].bias.fill_(0.1)  # every dynamic Gaussian moves
+    model.dynamic[::2] = False
+    seen: list[int] = []
+    handle = model.field.register_forward_hook(lambda m, args, out: seen.append(args[0].shape[0]))
+    moved = model.at(0.5, 0).means
+    handle.remove()
+    assert seen == [int(model.dynamic.sum())]
+    still = model.canonical.means
+    assert torch.equal(moved[~model.dynamic], still[~model.dynamic])
+    assert not torch.allclose(moved[model.dynamic], still[model.dynamic])
+
+
+def test_resume_is_bit_identical_on_cpu(tmp_path: Path) -> None:
+    config = tiny_config(max_iters=8, warmup_iters=3)
+    straight = Trainer(config, tmp_path / "a", NullWriter())
+    for step in range(8):
+        straight.train_step(step)
+
+    first = Trainer(config, tmp_path / "b", NullWriter())
+    for step in range(4):
+        first.train_step(step)
+        first.step = step + 1
+    first.save()
+    resumed = Trainer(config, tmp_path / "b", NullWriter())
+    resumed.load(first.checkpoint_path())
+    assert resumed.step == 4
+    for step in range(4, 8):
+        resumed.train_step(step)
+
+    a, b = straight.model.state_dict(), resumed.model.state_dict()
+    assert a.keys() == b.keys()
+    for key in a:
+        assert torch.equal(a[key], b[key]), key
+
+
+def test_real_scene_loss_falls_and_psnr_rises(tmp_path: Path) -> None:
+    """A short run on ../shared/data/lego-tiny (100², black background)."""
+    path = shared_scene("lego-tiny")
+    config = tiny_config(
+        data=str(path),
+        max_iters=150,
+        warmup_iters=50,
+        dataset=DataConfig(background=(0.0, 0.0, 0.0)),
+    )
+    trainer = Trainer(config, tmp_path, NullWriter())
+    view = next(iter(trainer.data.views("train")))
+
+    def quality() -> float:
+        with torch.no_grad():
+            out = trainer.renderer(trainer.model.at(view.time, 0), view.camera, trainer.background)
+        return float(psnr(out.rgb, view.image))
+
+    before = quality()
+    losses = [float(trainer.train_step(step).loss) for step in range(config.max_iters)]
+    after = quality()
+    assert sum(losses[-20:]) < 0.7 * sum(losses[:20])
+    assert after > before + 3.0, (before, after)
+    assert torch.isfinite(trainer.model.canonical.means).all()
+
+
+@pytest.mark.parametrize("name", ["config", "checkpoint"])
+def test_unreadable_run_files_say_which(tmp_path: Path, name: str) -> None:
+    from dyngs.configio import load_config
+    from dyngs.engine.checkpoint import load_checkpoint
+    from dyngs.errors import ConfigError
+
+    path = tmp_path / f"{name}.bin"
+    path.write_bytes(b"\x00garbage")
+    with pytest.raises(ConfigError, match=str(path)):
+        (load_config if name == "config" else load_checkpoint)(path)
