@@ -230,6 +230,8 @@ class Trainer:
                         rate = window_steps / max(time.perf_counter() - window_start, 1e-9)
                         info = self.log(stats, rate)
                         window_start, window_steps = time.perf_counter(), 0
+                        if not self.console.is_terminal:  # logs and CI get plain lines
+                            self.console.print(f"step {self.step}/{cfg.max_iters}  {info}", highlight=False)
                     if cfg.image_every > 0 and self.step % cfg.image_every == 0:
                         self.writer.image("train/render", stats.out.rgb, self.step)
                         self.writer.image("train/ground_truth", stats.batch.image, self.step)
