@@ -22,7 +22,7 @@ ORTHONORMAL_TOLERANCE = 1e-3
 """Largest |RᵀR − I| entry accepted for a camera rotation (float32 JSON rounding is ~1e-7)."""
 
 
-def check_rigid(matrix: object) -> Float[np.ndarray, "4 4"] | str:
+def check_rigid(matrix: object, name: str = "transform_matrix") -> Float[np.ndarray, "4 4"] | str:
     """The matrix as float64 4×4 if it is a rigid transform, else a short problem statement.
 
     Rejected: not 4×4 numbers, non-finite entries, a last row other than (0, 0, 0, 1), a
@@ -31,22 +31,22 @@ def check_rigid(matrix: object) -> Float[np.ndarray, "4 4"] | str:
     try:
         m = np.asarray(matrix, dtype=np.float64)
     except (TypeError, ValueError):
-        return "transform_matrix is not a 4×4 matrix of numbers"
+        return f"{name} is not a 4×4 matrix of numbers"
     if m.shape != (4, 4):
-        return f"transform_matrix has shape {m.shape}, need 4×4"
+        return f"{name} has shape {m.shape}, need 4×4"
     if not np.isfinite(m).all():
-        return "transform_matrix has non-finite entries"
+        return f"{name} has non-finite entries"
     if np.abs(m[3] - (0.0, 0.0, 0.0, 1.0)).max() > 1e-6:
-        return f"transform_matrix last row is {m[3].tolist()}, need [0, 0, 0, 1]"
+        return f"{name} last row is {m[3].tolist()}, need [0, 0, 0, 1]"
     rotation = m[:3, :3]
     det = float(np.linalg.det(rotation))
     if abs(det) < 1e-6:
-        return f"transform_matrix rotation is singular (det {det:.3g})"
+        return f"{name} rotation is singular (det {det:.3g})"
     error = float(np.abs(rotation.T @ rotation - np.eye(3)).max())
     if error > ORTHONORMAL_TOLERANCE:
-        return f"transform_matrix rotation is not orthonormal (|RᵀR − I| = {error:.3g})"
+        return f"{name} rotation is not orthonormal (|RᵀR − I| = {error:.3g})"
     if det < 0:
-        return "transform_matrix rotation is a reflection (det −1)"
+        return f"{name} rotation is a reflection (det −1)"
     return m
 
 
@@ -57,6 +57,32 @@ def blender_to_world_to_camera(c2w_gl: Float[np.ndarray, "4 4"]) -> Float[np.nda
     w2c = np.eye(4)
     w2c[:3, :3] = rotation.T
     w2c[:3, 3] = -rotation.T @ center
+    return w2c
+
+
+LLFF_TO_CV = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+"""Reorders LLFF camera axes (down, right, back) into OpenCV's (right, down, forward)."""
+
+
+def llff_to_world_to_camera(pose: Float[np.ndarray, "3 4"]) -> Float[np.ndarray, "4 4"]:
+    """OpenCV world-to-camera from an LLFF camera-to-world [down | right | back | centre].
+
+    The three rotation columns are the camera's down, right and backward axes in world
+    space: OpenCV's x (right) is LLFF's second column, y (down) its first and z (forward)
+    the negated third.
+    """
+    rotation = pose[:, :3] @ LLFF_TO_CV
+    return rotation_center_to_world_to_camera(rotation.T, pose[:, 3])
+
+
+def rotation_center_to_world_to_camera(
+    rotation: Float[np.ndarray, "3 3"], center: Float[np.ndarray, " 3"]
+) -> Float[np.ndarray, "4 4"]:
+    """World-to-camera from its rotation (rows: the camera axes in world space) and the
+    camera centre: x_cam = R (x − c), so t = −R c."""
+    w2c = np.eye(4)
+    w2c[:3, :3] = rotation
+    w2c[:3, 3] = -rotation @ center
     return w2c
 
 
@@ -126,3 +152,120 @@ def random_points_in_box(box: SceneBox, count: int, seed: int) -> Float[Tensor, 
     lower = torch.tensor(box.lower, dtype=torch.float64)
     upper = torch.tensor(box.upper, dtype=torch.float64)
     return (lower + unit * (upper - lower)).float()
+
+
+def _distinct(cameras: list[Camera], ranges: list[tuple[float, float]]) -> list[int]:
+    """Indices of the first camera of each distinct (pose, intrinsics, size, depth range)."""
+    seen: dict[tuple[float, ...], int] = {}
+    for index, (camera, depth) in enumerate(zip(cameras, ranges, strict=True)):
+        pose = camera.world_to_camera.double().flatten().tolist()
+        key = (*pose, camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height)
+        seen.setdefault(tuple(round(v, 6) for v in (*key, *depth)), index)
+    return sorted(seen.values())
+
+
+def points_in_common_view(
+    cameras: list[Camera],
+    depth_ranges: list[tuple[float, float]],
+    count: int,
+    seed: int,
+    max_cameras: int = 64,
+    rounds: int = 32,
+) -> Float[Tensor, "P 3"]:
+    """`count` points spread uniformly over the volume that every camera sees.
+
+    Camera j sees a point when it projects inside the image with a depth in
+    `depth_ranges[j]` (near, far). Candidates are drawn in the frustum of a random camera
+    (a random pixel and a depth with density ∝ depth², i.e. uniform in the frustum's
+    volume) and kept when every camera sees them: each frustum holds the common volume
+    at a constant density, so the kept points are uniform in it. Repeated cameras count
+    once, and at most `max_cameras` evenly spread ones are checked (the acceptance test
+    costs one projection per camera). If the cameras share too little view for `count`
+    points to pass in `rounds` batches, the rest are the candidates most cameras see.
+    """
+    if count < 1:
+        raise ValueError(f"count must be ≥ 1, got {count}")
+    if len(cameras) != len(depth_ranges) or not cameras:
+        raise ValueError("points_in_common_view needs one depth range per camera, and a camera")
+    chosen = _distinct(cameras, depth_ranges)
+    if len(chosen) > max_cameras:
+        chosen = [chosen[round(i)] for i in np.linspace(0, len(chosen) - 1, max_cameras)]
+    cams = [cameras[i] for i in chosen]
+    near = np.array([max(depth_ranges[i][0], cameras[i].near) for i in chosen])
+    far = np.array([depth_ranges[i][1] for i in chosen])
+    if not (np.isfinite(near).all() and np.isfinite(far).all() and (far > near).all()):
+        raise ValueError("every depth range needs finite near < far")
+    w2c = np.stack([c.world_to_camera.double().cpu().numpy() for c in cams])
+    rotations, translations = w2c[:, :3, :3], w2c[:, :3, 3]
+    intrinsics = np.array([(c.fx, c.fy, c.cx, c.cy, c.width, c.height) for c in cams])
+    rng = np.random.default_rng(seed)
+    batch = max(1024, 2 * count)
+    accepted: list[np.ndarray] = []
+    num_accepted = 0
+    spare = np.zeros((0, 3))
+    spare_score = np.zeros(0, dtype=np.int64)
+    for _ in range(rounds):
+        source = rng.integers(0, len(cams), size=batch)
+        fx, fy, cx, cy, width, height = intrinsics[source].T
+        u = rng.uniform(0.0, 1.0, size=batch) * width
+        v = rng.uniform(0.0, 1.0, size=batch) * height
+        a3, b3 = near[source] ** 3, far[source] ** 3
+        depth = np.cbrt(a3 + rng.uniform(0.0, 1.0, size=batch) * (b3 - a3))
+        local = np.stack([(u - cx) / fx * depth, (v - cy) / fy * depth, depth], axis=1)
+        # x_world = Rᵀ (x_cam − t), one candidate per row.
+        world = np.einsum("nji,nj->ni", rotations[source], local - translations[source])
+        score = _visibility(world, rotations, translations, intrinsics, near, far)
+        full = score == len(cams)
+        accepted.append(world[full])
+        num_accepted += int(full.sum())
+        if num_accepted >= count:
+            break
+        spare = np.concatenate([spare, world[~full]])
+        spare_score = np.concatenate([spare_score, score[~full]])
+        if len(spare) > count:
+            best = np.argpartition(-spare_score, count)[:count]
+            spare, spare_score = spare[best], spare_score[best]
+    points = np.concatenate(accepted)[:count]
+    if len(points) < count:
+        order = np.argsort(-spare_score, kind="stable")[: count - len(points)]
+        points = np.concatenate([points, spare[order]])
+    return torch.from_numpy(points).float()
+
+
+def _visibility(
+    points: Float[np.ndarray, "P 3"],
+    rotations: Float[np.ndarray, "F 3 3"],
+    translations: Float[np.ndarray, "F 3"],
+    intrinsics: Float[np.ndarray, "F 6"],
+    near: Float[np.ndarray, " F"],
+    far: Float[np.ndarray, " F"],
+    chunk: int = 8192,
+) -> np.ndarray:
+    """How many of the cameras see each point (in the image, depth within near..far)."""
+    score = np.zeros(len(points), dtype=np.int64)
+    fx, fy, cx, cy, width, height = (column[:, None] for column in intrinsics.T)
+    for start in range(0, len(points), chunk):
+        block = points[start : start + chunk]
+        local = np.einsum("fij,pj->fpi", rotations, block) + translations[:, None, :]
+        z = local[..., 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = fx * local[..., 0] / z + cx
+            v = fy * local[..., 1] / z + cy
+        inside = (z >= near[:, None]) & (z <= far[:, None])
+        inside &= (u >= 0) & (u <= width) & (v >= 0) & (v <= height)
+        score[start : start + chunk] = inside.sum(0)
+    return score
+
+
+def depth_ranges_around_box(cameras: list[Camera], box: SceneBox) -> list[tuple[float, float]]:
+    """Per camera, the depths (along its optical axis) that the box's bounding sphere spans:
+    the near/far bounds of formats that give none."""
+    center = np.asarray(box.center)
+    radius = 0.5 * box.diagonal
+    ranges: list[tuple[float, float]] = []
+    for camera in cameras:
+        w2c = camera.world_to_camera.double().cpu().numpy()
+        depth = float(w2c[2, :3] @ center + w2c[2, 3])
+        near = max(depth - radius, camera.near)
+        ranges.append((near, max(depth + radius, 2.0 * near)))
+    return ranges

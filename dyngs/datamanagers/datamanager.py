@@ -5,7 +5,8 @@ Letters: H×W image.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -13,14 +14,27 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
-from dyngs.datamanagers.base import DatasetError, SceneData, Split
+from dyngs.datamanagers.base import (
+    HOST_CACHE_BYTES,
+    DatasetError,
+    LazyImages,
+    SceneData,
+    Split,
+    image_size,
+)
 from dyngs.datamanagers.dnerf import parse_dnerf
+from dyngs.datamanagers.dynerf import parse_dynerf
+from dyngs.datamanagers.nerfies import parse_nerfies
+from dyngs.datamanagers.panoptic import parse_panoptic
 from dyngs.datamanagers.procedural import demo_path
+from dyngs.datamanagers.progress import report
 from dyngs.errors import ConfigError
 from dyngs.types import Camera
 
 DEMO = "demo"
 """The `--data` value that selects the built-in procedural scene."""
+AUTO = "auto"
+"""The `--format` value that picks the format from the folder's contents."""
 
 
 @dataclass(frozen=True)
@@ -32,9 +46,16 @@ class DataConfig:
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
     """RGB the RGBA images are composited over (and renders use)."""
     num_random_points: int = 20_000
-    """Initial points drawn in the scene box when the folder has no point cloud."""
+    """Initial points drawn when the folder has no point cloud: uniform in the scene box
+    (D-NeRF) or in the volume every train camera sees (Panoptic, DyNeRF, Nerfies)."""
     device_cache_bytes: int = 2 << 30
     """Keep float images on the training device when they fit in this many bytes."""
+    host_cache_bytes: int = HOST_CACHE_BYTES
+    """Keep at most this many bytes of decoded uint8 frames in host memory for the
+    formats read lazily (Panoptic, DyNeRF, Nerfies); the rest are re-read on demand."""
+    format: str = AUTO
+    """Dataset format: `auto` (from the folder's contents), `dnerf`, `panoptic`,
+    `dynerf` or `nerfies`."""
 
     def __post_init__(self) -> None:
         if self.downscale < 1:
@@ -45,6 +66,11 @@ class DataConfig:
             raise ConfigError(f"--num-random-points must be ≥ 1, got {self.num_random_points}")
         if self.device_cache_bytes < 0:
             raise ConfigError(f"--device-cache-bytes must be ≥ 0, got {self.device_cache_bytes}")
+        if self.host_cache_bytes < 0:
+            raise ConfigError(f"--host-cache-bytes must be ≥ 0, got {self.host_cache_bytes}")
+        names = [AUTO, *(fmt.name for fmt in FORMATS)]
+        if self.format not in names:
+            raise ConfigError(f"--format must be one of {', '.join(names)}, got {self.format!r}")
 
 
 @dataclass(frozen=True)
@@ -59,27 +85,64 @@ def _parse_dnerf(path: Path, config: DataConfig, seed: int) -> SceneData:
     return parse_dnerf(path, config.downscale, config.background, config.num_random_points, seed)
 
 
+CaptureParser = Callable[[Path, int, tuple[float, float, float], int, int, int], SceneData]
+"""parse(path, downscale, background, num_random_points, seed, cache_bytes)."""
+
+
+def _capture(parse: CaptureParser) -> Callable[[Path, DataConfig, int], SceneData]:
+    """A format read lazily (Panoptic, DyNeRF, Nerfies), which also takes the host cache."""
+
+    def run(path: Path, config: DataConfig, seed: int) -> SceneData:
+        return parse(
+            path,
+            config.downscale,
+            config.background,
+            config.num_random_points,
+            seed,
+            config.host_cache_bytes,
+        )
+
+    return run
+
+
 FORMATS: tuple[DatasetFormat, ...] = (
     DatasetFormat("dnerf", "transforms_train.json", _parse_dnerf),
+    DatasetFormat("panoptic", "train_meta.json", _capture(parse_panoptic)),
+    DatasetFormat("dynerf", "poses_bounds.npy", _capture(parse_dynerf)),
+    DatasetFormat("nerfies", "dataset.json", _capture(parse_nerfies)),
 )
 """On-disk formats, tried in order: the first whose marker file exists parses the folder."""
 
 
 def load_scene(data: str | Path, config: DataConfig, seed: int = 0) -> SceneData:
-    """Parse `data`: "demo" (the built-in procedural scene) or a dataset folder.
+    """Parse `data`: "demo" (the built-in procedural scene) or a dataset folder, in the
+    format `config.format` names or, for "auto", the first whose marker file it holds.
 
-    `seed` seeds the random initial points of folders that have no point cloud.
+    `seed` seeds the random initial points of folders that have no point cloud. One line
+    on stderr says what was found.
     """
     if str(data) == DEMO:
-        return _parse_dnerf(demo_path(), config, seed)
+        scene = _parse_dnerf(demo_path(), config, seed)
+        report(f"[bold]dnerf[/bold] {scene.summary()}")
+        return scene
     path = Path(data).expanduser()
     if not path.exists():
         raise DatasetError(f"{path}: does not exist")
-    for fmt in FORMATS:
-        if (path / fmt.marker).is_file():
-            return fmt.parse(path, config, seed)
-    expected = " or ".join(fmt.marker for fmt in FORMATS)
-    raise DatasetError(f"{path}: not a dataset folder (expected {expected} in it, or '{DEMO}')")
+    if not path.is_dir():
+        raise DatasetError(f"{path}: not a directory")
+    if config.format == AUTO:
+        found = [fmt for fmt in FORMATS if (path / fmt.marker).is_file()]
+        if not found:
+            expected = " or ".join(fmt.marker for fmt in FORMATS)
+            raise DatasetError(
+                f"{path}: not a dataset folder (expected {expected} in it, or '{DEMO}')"
+            )
+        fmt = found[0]
+    else:
+        fmt = next(fmt for fmt in FORMATS if fmt.name == config.format)
+    scene = fmt.parse(path, config, seed)
+    report(f"[bold]{fmt.name}[/bold] {scene.summary()}")
+    return scene
 
 
 @dataclass
@@ -90,32 +153,53 @@ class TrainBatch:
     time: float
     image: Float[Tensor, "H W 3"]
     mask: Float[Tensor, "H W 1"] | None
-    """Alpha of the source image in [0, 1], when it had one."""
+    """Per-pixel loss weights in [0, 1], when the split has masks (the alpha of RGBA
+    sources, or a format's foreground segmentation)."""
     index: int
     """Position of the view in its split."""
 
 
 class _ServedSplit:
     """A split's cameras on the device and its images either as float32 on the device
-    (converted once) or as uint8 on the CPU (converted per batch)."""
+    (converted once) or as uint8 on the CPU (converted per batch). Lazy uint8 images are
+    read one view ahead in a thread, so disk and decoding overlap the training step."""
 
     def __init__(self, split: Split, device: torch.device, cache: bool) -> None:
         self.device = device
         self.cached = cache
         self.cameras = [camera.to(device) for camera in split.cameras]
         self.times = [float(t) for t in split.times]
-        self.images = [self._prepare(image, cache) for image in split.images]
-        self.masks = None if split.masks is None else [self._prepare(m, cache) for m in split.masks]
-
-    def _prepare(self, image: Tensor, cache: bool) -> Tensor:
-        return self._to_float(image) if cache else image
+        self.images: Sequence[Tensor] = split.images
+        self.masks: Sequence[Tensor] | None = split.masks
+        if cache:
+            self.images = [self._to_float(image) for image in split.images]
+            if split.masks is not None:
+                self.masks = [self._to_float(mask) for mask in split.masks]
+            for source in (split.images, split.masks):
+                if isinstance(source, LazyImages):
+                    source.clear()  # the float copies serve from now on
+        lazy = isinstance(split.images, LazyImages) or isinstance(split.masks, LazyImages)
+        self._pool = ThreadPoolExecutor(1) if lazy and not cache else None
+        self._ahead: tuple[int, Future[tuple[Tensor, Tensor | None]]] | None = None
 
     def _to_float(self, image: Tensor) -> Tensor:
         return image.to(self.device, non_blocking=True).float().div_(255.0)
 
+    def _read(self, index: int) -> tuple[Tensor, Tensor | None]:
+        return self.images[index], None if self.masks is None else self.masks[index]
+
+    def read_ahead(self, index: int) -> None:
+        """Start reading view `index` (lazy splits only); its `batch` then waits for it."""
+        if self._pool is not None and 0 <= index < len(self):
+            if self._ahead is None or self._ahead[0] != index:
+                self._ahead = (index, self._pool.submit(self._read, index))
+
     def batch(self, index: int) -> TrainBatch:
-        image = self.images[index]
-        mask = None if self.masks is None else self.masks[index]
+        if self._ahead is not None and self._ahead[0] == index:
+            image, mask = self._ahead[1].result()
+        else:
+            image, mask = self._read(index)
+        self._ahead = None
         if not self.cached:
             image = self._to_float(image)
             mask = None if mask is None else self._to_float(mask)
@@ -126,7 +210,11 @@ class _ServedSplit:
 
 
 def _float_bytes(split: Split) -> int:
-    pixels = sum(image.shape[0] * image.shape[1] for image in split.images)
+    """Bytes of the split as float32 (sizes read without loading lazy images)."""
+    pixels = 0
+    for index in range(len(split.images)):
+        height, width = image_size(split.images, index)
+        pixels += height * width
     channels = 3 + (1 if split.masks is not None else 0)
     return 4 * channels * pixels
 
@@ -190,7 +278,11 @@ class DataManager:
             self._order = self._permutation(self._epoch)
         index = self._order[self._position]
         self._position += 1
-        return self._splits["train"].batch(index)
+        served = self._splits["train"]
+        batch = served.batch(index)
+        if self._position < len(self._order):
+            served.read_ahead(self._order[self._position])
+        return batch
 
     def views(self, split: str) -> Iterator[TrainBatch]:
         """Every view of "train", "val" or "test", in order."""
@@ -198,7 +290,9 @@ class DataManager:
             raise ValueError(f"unknown split {split!r}: use train, val or test")
         served = self._splits[split]
         for index in range(len(served)):
-            yield served.batch(index)
+            batch = served.batch(index)
+            served.read_ahead(index + 1)
+            yield batch
 
     def num_views(self, split: str) -> int:
         if split not in self._splits:

@@ -14,7 +14,6 @@ Letters: F frames, H×W image, P points.
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from concurrent.futures import ThreadPoolExecutor
@@ -33,6 +32,7 @@ from dyngs.datamanagers.cameras import (
     random_points_in_box,
     scene_box_from_cameras,
 )
+from dyngs.datamanagers.files import load_json
 from dyngs.datamanagers.images import composite, downscale, read_image
 from dyngs.datamanagers.progress import progress_bar
 from dyngs.ply import read_ply
@@ -58,24 +58,6 @@ class _Frame:
 
     def error(self, problem: str) -> DatasetError:
         return DatasetError(f"{self.json_path}: frame {self.index} ({self.file_path}): {problem}")
-
-
-def _load_json(path: Path) -> dict[str, Any]:
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as error:
-        raise DatasetError(f"{path}: cannot read ({error.strerror})") from None
-    except UnicodeDecodeError:
-        raise DatasetError(f"{path}: not UTF-8 text") from None
-    try:
-        data = json.loads(text)
-    except json.JSONDecodeError as error:
-        raise DatasetError(
-            f"{path}: malformed JSON at line {error.lineno}, column {error.colno}: {error.msg}"
-        ) from None
-    if not isinstance(data, dict):
-        raise DatasetError(f"{path}: top level must be a JSON object, got {type(data).__name__}")
-    return data
 
 
 _INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x")
@@ -113,7 +95,7 @@ def _image_file(folder: Path, file_path: str) -> Path | None:
 
 
 def _read_frames(folder: Path, json_path: Path) -> list[_Frame]:
-    data = _load_json(json_path)
+    data = load_json(json_path)
     if "frames" not in data:
         raise DatasetError(f"{json_path}: no 'frames' list")
     frames = data["frames"]
@@ -207,7 +189,8 @@ def _load_image(
     return downscale(image, factor), alpha, (width, height)
 
 
-def _find_point_cloud(folder: Path) -> Path | None:
+def find_point_cloud(folder: Path) -> Path | None:
+    """fused.ply, points3d.ply or the only *.ply at the top of `folder`, if any."""
     for name in POINT_CLOUD_NAMES:
         if (folder / name).is_file():
             return folder / name
@@ -275,7 +258,7 @@ def parse_dnerf(
 
     points: torch.Tensor | None = None
     colors: torch.Tensor | None = None
-    cloud = _find_point_cloud(path)
+    cloud = find_point_cloud(path)
     if cloud is not None:
         points, colors = read_point_cloud(cloud)
     box = scene_box_from_cameras(splits["train"].cameras, points)

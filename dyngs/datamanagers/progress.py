@@ -1,4 +1,4 @@
-"""The progress bar shown while datasets load or render."""
+"""The progress bar shown while datasets load or render, and the line saying what loaded."""
 
 from __future__ import annotations
 
@@ -18,3 +18,8 @@ def progress_bar() -> Progress:
         transient=True,
         disable=not console.is_terminal,
     )
+
+
+def report(message: str) -> None:
+    """One line on stderr (kept in logs too, unlike the bar)."""
+    Console(stderr=True).print(message, highlight=False, soft_wrap=True)

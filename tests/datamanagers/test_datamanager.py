@@ -4,10 +4,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
-from dyngs.datamanagers.base import DatasetError, SceneData, Split
+from dyngs.datamanagers.base import DatasetError, LazyImages, SceneData, Split
 from dyngs.datamanagers.datamanager import DataConfig, DataManager, load_scene
 from dyngs.errors import ConfigError
 from dyngs.types import Camera, SceneBox
@@ -121,3 +122,66 @@ def test_demo_is_the_procedural_scene(tmp_path: Path, monkeypatch: pytest.Monkey
     folder = small_dataset(tmp_path / "scene")
     monkeypatch.setattr(datamanager, "demo_path", lambda: folder)
     assert len(load_scene("demo", DataConfig()).train) == 3
+
+
+FRAME_BYTES = 6 * 8 * 3
+"""A lazy test frame as uint8."""
+
+
+def _lazy_scene(count: int, cache_bytes: int) -> tuple[SceneData, list[int]]:
+    """A scene whose train split is `count` lazily read 6×8 frames; `reads` logs each read."""
+    reads: list[int] = []
+
+    def load(index: int) -> np.ndarray:
+        reads.append(index)
+        return np.full((6, 8, 3), index % 256, dtype=np.uint8)
+
+    images = LazyImages(load, [(6, 8)] * count, 3, cache_bytes)
+    cameras = [Camera.from_fov(1.0, 8, 6, torch.eye(4))] * count
+    train = Split(cameras, torch.linspace(0, 1, count), images)
+    scene = _scene()
+    scene.train = train
+    return scene, reads
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_a_large_lazy_split_is_served_without_loading_every_frame(device: str) -> None:
+    # 1000 frames, a host cache of 10 frames, a device budget of 4 KB (7 float frames).
+    scene, reads = _lazy_scene(1000, cache_bytes=10 * FRAME_BYTES)
+    config = DataConfig(device_cache_bytes=4096)
+    manager = DataManager(scene, config, torch.device(device), torch.Generator().manual_seed(0))
+    assert reads == []  # planning memory read no frame
+    batches = [manager.next_train() for _ in range(25)]
+    images = scene.train.images
+    assert isinstance(images, LazyImages)
+    # Each served frame is read once, plus the one read ahead for the next step.
+    assert len(reads) <= 26 and images.loads == len(reads)
+    assert {b.index for b in batches} <= set(reads)
+    assert images.cached_bytes <= 10 * FRAME_BYTES
+    for batch in batches:
+        assert batch.image.dtype == torch.float32 and batch.image.device.type == device
+        assert float(batch.image[0, 0, 0]) == pytest.approx((batch.index % 256) / 255)
+
+
+def test_lazy_images_cache_is_bounded_and_reused() -> None:
+    scene, reads = _lazy_scene(5, cache_bytes=2 * FRAME_BYTES)
+    images = scene.train.images
+    assert isinstance(images, LazyImages) and images.size(3) == (6, 8)
+    first = images[0]
+    assert images[0] is first and reads == [0]  # from the cache
+    _ = images[1], images[2]  # evicts frame 0 (least recently used)
+    assert images.cached_bytes == 2 * FRAME_BYTES
+    _ = images[0]
+    assert reads == [0, 1, 2, 0]
+    assert [int(image[0, 0, 0]) for image in images[1:4]] == [1, 2, 3]
+    with pytest.raises(IndexError):
+        images[5]
+
+
+def test_a_small_lazy_split_is_converted_once_onto_the_device() -> None:
+    scene, reads = _lazy_scene(12, cache_bytes=0)
+    manager = DataManager(scene, DataConfig(), torch.device("cpu"), torch.Generator())
+    assert sorted(reads) == list(range(12))  # read once, kept as float
+    for _ in range(30):
+        manager.next_train()
+    assert sorted(reads) == list(range(12))

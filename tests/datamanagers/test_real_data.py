@@ -41,6 +41,6 @@ def test_mujoco_collision_downscaled() -> None:
     assert tuple(scene.train.images[0].shape) == (100, 100, 3)
     assert scene.train.cameras[0].fx == pytest.approx(857.8027682038233 / 8)
     assert scene.train.masks is not None
-    assert 0.2 < float(torch.stack(scene.train.masks).float().mean()) / 255 < 0.9
+    assert 0.2 < float(torch.stack(list(scene.train.masks)).float().mean()) / 255 < 0.9
     assert tuple(scene.points.shape) == (100_000, 3) and scene.point_colors is not None
     assert _contains(scene.scene_box.lower, scene.scene_box.upper, 1.0)
