@@ -20,6 +20,11 @@ def space_time(
     """(x, y, z, t) in field units: space normalised by `box` to [-1, 1]³ and t ∈ [0, 1]
     mapped to 2t − 1 (DESIGN.md). Not clamped. `t` may also be [1, 1], one time for all.
 
+    A non-finite coordinate (a NaN or ±Inf mean, which the renderers cull and count) is
+    replaced by 0, the box centre or mid-time, with zero gradient: a NaN reaching
+    `grid_sample`'s backward crashed the process (an out-of-bounds write), and in the MLP it
+    made NaN hidden activations, whose weight gradients NaN × 0 = NaN spoilt every row.
+
     The box corners are built from Python floats in the input's dtype, so float64 inputs
     are normalised to float64 precision."""
     n = xyz.shape[0]
@@ -27,7 +32,8 @@ def space_time(
         raise ValueError(f"xyz must be [N, 3], got {tuple(xyz.shape)}")
     if t.ndim != 2 or t.shape[1] != 1 or t.shape[0] not in (n, 1):
         raise ValueError(f"t must be [N, 1] (or [1, 1]) for N = {n}, got {tuple(t.shape)}")
-    return torch.cat([box.normalize(xyz), (t * 2.0 - 1.0).expand(n, 1)], dim=1)
+    coords = torch.cat([box.normalize(xyz), (t * 2.0 - 1.0).expand(n, 1)], dim=1)
+    return torch.where(torch.isfinite(coords), coords, 0.0)
 
 
 def init_linear_(layer: nn.Linear, generator: torch.Generator | None = None) -> nn.Linear:

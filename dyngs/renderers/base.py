@@ -54,6 +54,11 @@ class RenderOutput:
     """Per-axis screen extent in whole pixels; 0 where a Gaussian is not drawn."""
     visible: Bool[Tensor, " N"]
     """True for every Gaussian that can touch at least one pixel."""
+    num_nonfinite: Int[Tensor, ""]
+    """How many Gaussians had a NaN or ±Inf in a parameter (mean, quaternion, scale,
+    opacity or a colour coefficient in use) and were culled: drawn nowhere, with zero
+    gradient. A 0-d integer tensor on the render device, so that producing it never
+    waits for the device; the caller decides when to read it."""
 
 
 class Renderer(Protocol):

@@ -24,6 +24,7 @@ image origin. Compositing runs in the input dtype.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -76,6 +77,8 @@ class ScreenGaussians:
     extents: Float[Tensor, "N 2"]
     """Half-widths in px of the box holding every pixel centre where α ≥ alpha_min."""
     visible: Bool[Tensor, " N"]
+    num_nonfinite: Int[Tensor, ""]
+    """How many Gaussians were culled for a NaN or ±Inf parameter (0-d, on the device)."""
 
 
 class CpuReferenceRenderer:
@@ -105,13 +108,16 @@ class CpuReferenceRenderer:
             means2d=screen.means2d,
             radii=torch.where(screen.visible[:, None], screen.extents.ceil(), 0).int(),
             visible=screen.visible,
+            num_nonfinite=screen.num_nonfinite,
         )
 
 
 def _finite_rows(*tensors: Tensor) -> Bool[Tensor, " N"]:
-    ok = torch.ones(tensors[0].shape[0], dtype=torch.bool, device=tensors[0].device)
+    n = tensors[0].shape[0]
+    ok = torch.ones(n, dtype=torch.bool, device=tensors[0].device)
     for t in tensors:
-        ok &= torch.isfinite(t.reshape(t.shape[0], -1)).all(dim=1)
+        # An explicit row width, not -1: reshape cannot infer -1 for an empty scene (N = 0).
+        ok &= torch.isfinite(t.reshape(n, math.prod(t.shape[1:]))).all(dim=1)
     return ok
 
 
@@ -160,7 +166,11 @@ def project(
     if antialiased:
         compensation = ((a * c - b * b).clamp_min(0) / det.clamp_min(1e-30)).sqrt()
         opacities = opacities * compensation
+    # Finite float64 parameters can still overflow here (scales beyond ~1e120 make det
+    # inf, and then a conic entry is inf / inf = NaN). Such rows are culled, as the oracle
+    # does; a finite det implies finite a_d, b, c_d and so a finite conic.
     valid = finite & in_depth & (det > 0) & (opacities >= guards.alpha_min)
+    valid &= torch.isfinite(det) & torch.isfinite(means2d).all(dim=-1)
     det = torch.where(valid, det, 1.0)
     conics = torch.stack((c_d / det, -b / det, a_d / det), dim=-1)
 
@@ -177,8 +187,13 @@ def project(
     if g.sh_degree is None:
         rgb = colors
     else:
-        center = camera.center.to(device=device, dtype=g.means.dtype)
-        rgb = eval_sh(g.sh_degree, colors, torch.where(keep, g.means, 0) - center)
+        # View directions from the float64 means and camera centre: in float32, a scene
+        # 1e4 units from the origin loses ~1e-3 units of its camera-relative position to
+        # rounding (ulp(1e4) ≈ 1e-3), which shifted SH colours by up to 1e-3 against the
+        # oracle. The difference of nearby points is exact in float64; only the (short)
+        # result is rounded to the input dtype.
+        center = -rot.T @ trans
+        rgb = eval_sh(g.sh_degree, colors, (means - center).to(g.means.dtype))
     return ScreenGaussians(
         means2d=means2d,
         conics=conics,
@@ -187,6 +202,7 @@ def project(
         colors=rgb,
         extents=extents,
         visible=visible,
+        num_nonfinite=(~finite).sum(),
     )
 
 

@@ -1,11 +1,14 @@
 """`cuda-tile`: the fast path on NVIDIA GPUs, with gsplat's tile rasterizer as the engine.
 
 Install with `pip install dyngs[cuda]`. Held to `cpu-reference` by the parity tests in
-tests/renderers/test_cuda_parity.py (skipped without a CUDA device).
+tests/renderers/test_cuda_tile.py and the hard cases in tests/renderers/test_hard_cases.py
+(skipped without a CUDA device).
 
 How our guards map onto gsplat (v1.4+):
-- near plane, far plane → `near_plane`, `far_plane`; 0.3 px² dilation → `eps2d`;
-  Mip-Splatting compensation → `rasterize_mode="antialiased"`.
+- near plane, far plane → `near_plane`, `far_plane`, and decided here as well, because
+  gsplat culls only z < near where the guard table culls z ≤ near; 0.3 px² dilation →
+  `eps2d`; Mip-Splatting compensation → `rasterize_mode="antialiased"`.
+- A zero quaternion is handed over as the identity (gsplat would normalise it to NaN).
 - α clamp: gsplat clamps α at 0.999 where we clamp at 0.99. Opacities are clamped to
   0.99 before the call, so α ≤ 0.99 everywhere; the two rules then differ only for
   Gaussians with opacity > 0.99, by at most 1 % of their α near their centre.
@@ -14,12 +17,16 @@ How our guards map onto gsplat (v1.4+):
   pixel with α ≥ 1/255 either.
 - Early stop: gsplat stops when T would fall to ≤ 1e-4 (we: < 1e-4); the two differ
   only when T lands exactly on the threshold.
-- Non-finite parameters are culled here, as in the reference, before gsplat sees them.
+- Non-finite parameters are culled here, as in the reference, before gsplat sees them,
+  and counted in `RenderOutput.num_nonfinite`.
+- Means are handed over camera-relative (computed in float64), so a float32 scene far
+  from the origin keeps its precision (docs/NUMERICS.md).
 """
 
 from __future__ import annotations
 
 import importlib.util
+import math
 from dataclasses import dataclass
 
 import torch
@@ -84,22 +91,50 @@ class CudaTileRenderer:
         used = g.colors if g.sh_degree is None else g.colors[:, : (g.sh_degree + 1) ** 2]
         finite = torch.ones(n, dtype=torch.bool, device=device)
         for t in (g.means, g.quats, g.scales, g.opacities, used):
-            finite &= torch.isfinite(t.reshape(n, -1)).all(dim=1)
+            # An explicit row width, not -1: reshape cannot infer -1 when N = 0.
+            finite &= torch.isfinite(t.reshape(n, math.prod(t.shape[1:]))).all(dim=1)
         keep = finite[:, None]
-        colors = torch.where(finite.view(-1, *[1] * (g.colors.ndim - 1)), g.colors, 0)
-        opacities = torch.where(finite, g.opacities, 0).clamp(0, guards.alpha_max)
+        # Only the coefficients in use are handed over, so that nothing gsplat reads can
+        # hold a value the finiteness check did not see.
+        colors = torch.where(finite.view(-1, *[1] * (used.ndim - 1)), used, 0)
         K = torch.tensor(
             [[camera.fx, 0.0, camera.cx], [0.0, camera.fy, camera.cy], [0.0, 0.0, 1.0]],
             device=device,
             dtype=g.means.dtype,
         )
+        # gsplat projects in float32, where a scene 1e4 units from the origin loses ~1e-3
+        # units of camera-relative position (ulp(1e4) ≈ 1e-3). So the scene is shifted by
+        # the camera centre c = −Rᵀt in float64 first: gsplat sees means μ − c and the
+        # translation t + Rc (≈ 0), and R(μ − c) + (t + Rc) = Rμ + t, whatever rounding
+        # left in R. SH directions are unchanged when R is orthonormal; a float32 R is so
+        # only to ~1e-7, which far from the origin moves the camera centre gsplat derives
+        # by ~1e-7·|t|: keep world_to_camera in float64 there (docs/NUMERICS.md).
+        w2c = camera.world_to_camera.to(device=device, dtype=torch.float64)
+        rotation, translation = w2c[:3, :3], w2c[:3, 3]
+        center = -rotation.T @ translation
+        means64 = torch.where(keep, g.means, 0).double()
+        means = (means64 - center).to(g.means.dtype)
+        # gsplat culls only z < near; the guard table culls z ≤ near (and z ≥ far). Decided
+        # here in float64; a culled row gets opacity 0, so gsplat draws nothing of it.
+        with torch.no_grad():
+            depth = means64 @ rotation[2] + translation[2]
+            in_depth = (depth > camera.near) & (depth < camera.far)
+        opacities = torch.where(finite & in_depth, g.opacities, 0).clamp(0, guards.alpha_max)
+        viewmat = w2c.clone()
+        viewmat[:3, 3] = translation + rotation @ center
+        viewmat = viewmat.to(g.means.dtype)
+        # gsplat normalises quaternions itself, and a zero one would become NaN there; the
+        # guard table makes it the identity rotation, as `quaternion_to_rotation` does.
+        quats = normalize_quaternion(torch.where(keep, g.quats, 0), guards.quat_eps)
+        identity = torch.tensor([1.0, 0.0, 0.0, 0.0], device=device, dtype=quats.dtype)
+        quats = torch.where((quats == 0).all(dim=-1, keepdim=True), identity, quats)
         rgbd, alpha, meta = self._rasterization(
-            means=torch.where(keep, g.means, 0),
-            quats=normalize_quaternion(torch.where(keep, g.quats, 0), guards.quat_eps),
+            means=means,
+            quats=quats,
             scales=torch.where(keep, g.scales, 0),
             opacities=opacities,
             colors=colors,
-            viewmats=camera.world_to_camera.to(device=device, dtype=g.means.dtype)[None],
+            viewmats=viewmat[None],
             Ks=K[None],
             width=camera.width,
             height=camera.height,
@@ -128,12 +163,16 @@ class CudaTileRenderer:
             radii = radii[:, None].expand(-1, 2)
         if means2d_out.requires_grad:
             means2d_out.retain_grad()
-        visible = (radii > 0).all(dim=-1) & finite
+        # gsplat may give a radius to a row it draws nothing of (one culled here, or too
+        # faint: o < 1/255); as in the reference, such rows are not visible and have radius 0.
+        visible = (radii > 0).all(dim=-1) & finite & in_depth
+        visible &= opacities >= guards.alpha_min
         return RenderOutput(
             rgb=rgbd[0, ..., :3],
             alpha=alpha[0],
             depth=rgbd[0, ..., 3:4],
             means2d=means2d_out,
-            radii=radii.int(),
+            radii=torch.where(visible[:, None], radii, 0).int(),
             visible=visible,
+            num_nonfinite=(~finite).sum(),
         )

@@ -9,7 +9,12 @@ import pytest
 import torch
 
 from dyngs.cli import main
-from dyngs.renderers import CpuReferenceConfig, CudaTileConfig, RendererUnavailable, default_renderer
+from dyngs.renderers import (
+    CpuReferenceConfig,
+    CudaTileConfig,
+    RendererUnavailable,
+    default_renderer,
+)
 from dyngs.renderers.cuda_tile import cuda_tile_available
 from dyngs.types import Gaussians
 from tests.renderers.scenes import random_scene
@@ -33,7 +38,9 @@ def test_without_cuda_it_says_what_is_missing() -> None:
 @pytest.mark.skipif(HAS_CUDA, reason="this machine has CUDA")
 def test_cli_refuses_cuda_tile_in_one_line(capsys: pytest.CaptureFixture[str], tmp_path) -> None:  # type: ignore[no-untyped-def]
     with pytest.raises(SystemExit) as exit_info:
-        main(["hexplane-4dgs", "renderer:cuda-tile", "--data", "demo", "--output-dir", str(tmp_path)])
+        main(
+            ["hexplane-4dgs", "renderer:cuda-tile", "--data", "demo", "--output-dir", str(tmp_path)]
+        )
     assert exit_info.value.code == 2
     out = capsys.readouterr()
     text = (out.out + out.err).strip()
@@ -59,7 +66,9 @@ def _boundary_band(alpha: torch.Tensor) -> torch.Tensor:
 @pytest.mark.parametrize("seed", range(4))
 @pytest.mark.parametrize("antialiased", [False, True])
 def test_images_match_the_reference(seed: int, antialiased: bool) -> None:
-    gaussians, camera, background = random_scene(200 + seed, 400, 97, 61, torch.float32, sh_degree=seed % 4)
+    gaussians, camera, background = random_scene(
+        200 + seed, 400, 97, 61, torch.float32, sh_degree=seed % 4
+    )
     # Opacities ≤ 0.99 keep gsplat's 0.999 α clamp out of play (see cuda_tile.py).
     gaussians.opacities.clamp_(max=0.99)
     gaussians = gaussians.to("cuda")
@@ -84,11 +93,16 @@ def test_gradients_match_the_reference(seed: int) -> None:
     grads = []
     for config in (CudaTileConfig(), CpuReferenceConfig()):
         g = base.to("cuda")
-        leaves = [t.clone().requires_grad_(True) for t in (g.means, g.quats, g.scales, g.opacities, g.colors)]
+        leaves = [
+            t.clone().requires_grad_(True)
+            for t in (g.means, g.quats, g.scales, g.opacities, g.colors)
+        ]
         out = config.build()(Gaussians(*leaves, sh_degree=1), camera, background)
         (out.rgb * weights).sum().backward()
         grads.append([t.grad for t in leaves])
-    for name, fast, slow in zip(("means", "quats", "scales", "opacities", "colors"), *grads, strict=True):
+    for name, fast, slow in zip(
+        ("means", "quats", "scales", "opacities", "colors"), *grads, strict=True
+    ):
         scale = slow.abs().max().clamp_min(1e-12)
         relative = ((fast - slow).abs() / scale).flatten()
         # Relative 1e-3 for all but a bounded share (boundary-band pairs), stated here: 2 %.
