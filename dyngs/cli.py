@@ -12,7 +12,6 @@ import json
 import shlex
 import sys
 import time
-import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -25,8 +24,9 @@ from dyngs.configio import load_config, save_config
 from dyngs.engine.checkpoint import atomic_write_text
 from dyngs.engine.trainer import CHECKPOINT_NAME, Trainer
 from dyngs.engine.writer import NullWriter, TensorBoardWriter, Writer
-from dyngs.errors import ConfigError, UserError
+from dyngs.errors import ConfigError
 from dyngs.methods import method_presets
+from dyngs.tools.common import run_tool
 
 
 def expand_argument_files(args: Sequence[str]) -> list[str]:
@@ -116,11 +116,8 @@ def run_training(
 
 def main(argv: Sequence[str] | None = None) -> None:
     args = list(sys.argv[1:] if argv is None else argv)
-    console = Console()
-    warnings.showwarning = lambda message, *_, **__: console.print(
-        f"[yellow]warning:[/yellow] {message}", highlight=False, soft_wrap=True
-    )
-    try:
+
+    def body(console: Console) -> None:
         if args[:1] == ["--resume"]:
             if len(args) != 2:
                 raise ConfigError("usage: dyngs-train --resume RUN_FOLDER")
@@ -132,11 +129,8 @@ def main(argv: Sequence[str] | None = None) -> None:
         else:
             config = parse_train_args(args)
             run_training(config, new_run_dir(config), console)
-    except KeyboardInterrupt:
-        sys.exit(130)
-    except UserError as error:
-        console.print(f"[red]error:[/red] {error}", highlight=False, soft_wrap=True)
-        sys.exit(2)
+
+    run_tool(body)
 
 
 if __name__ == "__main__":

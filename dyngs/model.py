@@ -172,14 +172,12 @@ class DynamicGaussians(nn.Module):
         times = xyz.new_full((len(xyz), 1), t)
         return self.head(self.field(xyz, times)), index
 
-    def at(self, t: float, sh_degree: int, deform: bool = True) -> Gaussians:
-        """Drawable Gaussians at time t (canonical ones when `deform` is False)."""
+    def raw_at(self, t: float, deform: bool = True) -> dict[str, Tensor]:
+        """Raw (unactivated) parameters at time t, keyed like GAUSSIAN_PARAMS: the canonical
+        ones plus the head's deltas (the canonical ones alone when `deform` is False).
+        Exports read these; `at` activates them."""
         c = self.canonical
-        means: Tensor = c.means
-        quats: Tensor = c.quats
-        log_scales: Tensor = c.log_scales
-        logits: Tensor = c.opacity_logits
-        sh_dc: Tensor = c.sh_dc
+        raw: dict[str, Tensor] = dict(c.params())
         if deform:
             d, index = self.deltas(t)
 
@@ -188,13 +186,20 @@ class DynamicGaussians(nn.Module):
                     return base
                 return base + delta if index is None else base.index_add(0, index, delta)
 
-            means = add(means, d.means)
-            quats = add(quats, d.quats)
-            log_scales = add(log_scales, d.scales)
-            logits = add(logits, d.opacities)
-            sh_dc = add(sh_dc, None if d.colors is None else d.colors[:, None, :])
-        sh = torch.cat((sh_dc, c.sh_rest), dim=1)
-        return activate(means, quats, log_scales, logits, sh, sh_degree)
+            raw["means"] = add(c.means, d.means)
+            raw["quats"] = add(c.quats, d.quats)
+            raw["log_scales"] = add(c.log_scales, d.scales)
+            raw["opacity_logits"] = add(c.opacity_logits, d.opacities)
+            raw["sh_dc"] = add(c.sh_dc, None if d.colors is None else d.colors[:, None, :])
+        return raw
+
+    def at(self, t: float, sh_degree: int, deform: bool = True) -> Gaussians:
+        """Drawable Gaussians at time t (canonical ones when `deform` is False)."""
+        raw = self.raw_at(t, deform)
+        sh = torch.cat((raw["sh_dc"], raw["sh_rest"]), dim=1)
+        return activate(
+            raw["means"], raw["quats"], raw["log_scales"], raw["opacity_logits"], sh, sh_degree
+        )
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):  # type: ignore[no-untyped-def]
         if prefix + "dynamic" in state_dict:  # the checkpoint's Gaussian count

@@ -1,20 +1,31 @@
-"""Render a split, score it (PSNR, SSIM, LPIPS), save the images, time the renders."""
+"""Render a split, score it (PSNR, SSIM, LPIPS), save the images, time the renders.
+
+The returned dict is what `metrics.json` (end of training) and `eval_<split>.json`
+(`dyngs-eval`) hold. It never contains NaN or ±inf, so it is valid JSON: a metric that is
+not finite (PSNR of a render identical to its ground truth) or cannot be computed (LPIPS
+without its weights, or on images smaller than AlexNet accepts) is None (null).
+"""
 
 from __future__ import annotations
 
+import math
+import resource
 import statistics
+import sys
 import time
+import warnings
 from pathlib import Path
 from typing import Any
 
 import cv2
+import numpy as np
 import torch
 from rich.console import Console
 from rich.progress import Progress
 
 from dyngs.datamanagers.datamanager import DataManager
 from dyngs.engine.writer import to_uint8
-from dyngs.metrics import load_lpips, psnr, ssim
+from dyngs.metrics import LPIPS, load_lpips, psnr, ssim
 from dyngs.model import DynamicGaussians
 from dyngs.renderers.base import Renderer
 
@@ -22,6 +33,22 @@ from dyngs.renderers.base import Renderer
 def _sync(device: torch.device) -> None:
     if device.type == "cuda":
         torch.cuda.synchronize(device)
+
+
+def finite_or_none(value: float | None) -> float | None:
+    """`value` when it is a finite number, else None (JSON has no inf or NaN)."""
+    return value if value is not None and math.isfinite(value) else None
+
+
+def peak_memory_mb(device: torch.device) -> tuple[float, str]:
+    """Peak memory in MiB and what was measured: the CUDA caching allocator's peak since
+    the last `torch.cuda.reset_peak_memory_stats` on a GPU, else the peak resident set of
+    the whole process so far (it cannot be reset, so it includes any earlier work)."""
+    if device.type == "cuda":
+        return torch.cuda.max_memory_allocated(device) / 2**20, "cuda_max_allocated"
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    per_unit = 1 if sys.platform == "darwin" else 1024  # bytes on macOS, KiB on Linux
+    return peak * per_unit / 2**20, "process_max_rss"
 
 
 @torch.no_grad()
@@ -35,14 +62,26 @@ def evaluate(
     image_dir: Path | None,
     device: torch.device,
     console: Console | None = None,
+    warmup: int = 1,
 ) -> dict[str, Any]:
-    """Mean and per-frame metrics of `split`; renders are written to `image_dir`."""
+    """Mean and per-frame metrics of `split`; render | ground-truth pairs go to `image_dir`.
+
+    `warmup` untimed renders of the first view come first, so the timings leave out
+    one-off costs (allocator growth, CUDA kernel loading). `render_ms` is the mean time of
+    deforming and drawing one frame; its median and 95th percentile come alongside.
+    """
     lpips = load_lpips(device)
     background = data.scene.background.to(device, torch.float32)
     frames: list[dict[str, Any]] = []
     if image_dir is not None:
         image_dir.mkdir(parents=True, exist_ok=True)
     views = list(data.views(split))
+    if device.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(device)
+    for _ in range(warmup if views else 0):
+        renderer(model.at(views[0].time, sh_degree, deform=deform), views[0].camera, background)
+    _sync(device)
+    small_warned = False
     with Progress(console=console or Console(), transient=True) as progress:
         task = progress.add_task(f"evaluate {split}", total=len(views))
         for i, view in enumerate(views):
@@ -53,13 +92,24 @@ def evaluate(
             _sync(device)
             render_ms = 1000 * (time.perf_counter() - started)
             rgb = out.rgb.clamp(0, 1)
+            perceptual: float | None = None
+            if lpips is not None:
+                if min(rgb.shape[0], rgb.shape[1]) >= LPIPS.MIN_SIZE:
+                    perceptual = float(lpips(rgb, view.image))
+                elif not small_warned:
+                    small_warned = True
+                    warnings.warn(
+                        f"LPIPS needs images of at least {LPIPS.MIN_SIZE}×{LPIPS.MIN_SIZE} px, "
+                        f"{split} view {i} is {rgb.shape[0]}×{rgb.shape[1]}; its LPIPS is null",
+                        stacklevel=2,
+                    )
             frames.append(
                 {
                     "index": i,
                     "time": view.time,
-                    "psnr": float(psnr(rgb, view.image)),
+                    "psnr": finite_or_none(float(psnr(rgb, view.image))),
                     "ssim": float(ssim(rgb, view.image)),
-                    "lpips": None if lpips is None else float(lpips(rgb, view.image)),
+                    "lpips": perceptual,
                     "render_ms": render_ms,
                 }
             )
@@ -69,16 +119,27 @@ def evaluate(
                     str(image_dir / f"{i:04d}.png"), cv2.cvtColor(to_uint8(pair), cv2.COLOR_RGB2BGR)
                 )
             progress.advance(task)
+    memory, memory_source = peak_memory_mb(device)
 
     def mean(key: str) -> float | None:
+        # A frame whose PSNR was infinite makes the mean infinite too, hence None.
+        if key == "psnr" and any(f["psnr"] is None for f in frames):
+            return None
         values = [f[key] for f in frames if f[key] is not None]
-        return statistics.fmean(values) if values else None
+        return finite_or_none(statistics.fmean(values)) if values else None
 
+    times = [f["render_ms"] for f in frames]
     return {
         "split": split,
+        "num_frames": len(frames),
         "psnr": mean("psnr"),
         "ssim": mean("ssim"),
         "lpips": mean("lpips"),
         "render_ms": mean("render_ms"),
+        "render_ms_median": statistics.median(times) if times else None,
+        "render_ms_p95": float(np.percentile(times, 95)) if times else None,
+        "warmup_renders": warmup,
+        "peak_memory_mb": memory,
+        "peak_memory_source": memory_source,
         "frames": frames,
     }

@@ -1,0 +1,10 @@
+"""Tools that work on a trained run folder: `dyngs-eval`, `dyngs-render`, `dyngs-export`,
+and `dyngs-bench`, which trains and compares a sweep of configs.
+
+Each is a tyro CLI over a frozen config dataclass (`EvalConfig`, …) with a `run_*`
+function that does the work, so they can be called from Python as well.
+"""
+
+from dyngs.tools.common import LoadedRun, RunOverrides, load_run
+
+__all__ = ["LoadedRun", "RunOverrides", "load_run"]
