@@ -42,6 +42,10 @@ class LossConfig:
 
     dssim: float = 0.2
     """Share of D-SSIM in the photometric loss, (1-λ)·L1 + λ·(1-SSIM) (Kerbl et al. 2023)."""
+    masked: bool = False
+    """Restrict the photometric loss to the dataset's masks (alpha or segmentation). Off by
+    default: RGBA images are composited over the background, which must be learned too,
+    or nothing stops floaters in front of it."""
     plane_tv: float = 1.2e-3
     """Total variation of the spatial feature planes (K-Planes)."""
     time_smoothness: float = 6e-2
@@ -59,7 +63,8 @@ class TrainConfig:
     """Train a dynamic Gaussian-splatting model on a scene."""
 
     data: str = "demo"
-    """Dataset folder (D-NeRF/Blender format), or `demo` for the built-in procedural scene."""
+    """Dataset folder (D-NeRF/Blender, Panoptic, DyNeRF/N3DV or Nerfies/HyperNeRF; see
+    `--format`), or `demo` for the built-in procedural scene."""
     output_dir: Path = Path("outputs")
     """Runs are written to OUTPUT_DIR/RUN_NAME."""
     run_name: str | None = None
@@ -82,6 +87,9 @@ class TrainConfig:
     losses: LossConfig = dataclasses.field(default_factory=LossConfig)
     optim: OptimConfig = dataclasses.field(default_factory=OptimConfig)
     densify: DensifyConfig = dataclasses.field(default_factory=DensifyConfig)
+    max_bad_steps: int = 20
+    """Stop when this many consecutive steps have a non-finite loss or gradient (such steps
+    are skipped and counted; the last good checkpoint is kept)."""
     log_every: int = 25
     """Write scalars to TensorBoard every this many iterations."""
     image_every: int = 500
@@ -100,6 +108,8 @@ class TrainConfig:
             raise ConfigError(f"--max-iters must be ≥ 0, got {self.max_iters}")
         if self.warmup_iters < 0:
             raise ConfigError(f"--warmup-iters must be ≥ 0, got {self.warmup_iters}")
+        if self.max_bad_steps < 1:
+            raise ConfigError(f"--max-bad-steps must be ≥ 1, got {self.max_bad_steps}")
         if self.eval_split not in ("train", "val", "test"):
             raise ConfigError(f"--eval-split must be train, val or test, got {self.eval_split!r}")
 

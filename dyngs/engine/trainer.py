@@ -32,7 +32,7 @@ from dyngs.engine.densify import (
 from dyngs.engine.evaluate import evaluate
 from dyngs.engine.optim import build_optimizer, set_learning_rates
 from dyngs.engine.writer import Writer
-from dyngs.errors import ConfigError
+from dyngs.errors import ConfigError, UserError
 from dyngs.fields.base import PlaneGrids
 from dyngs.losses.arap import arap_loss, knn, neighbor_weights
 from dyngs.losses.photometric import photometric
@@ -80,6 +80,12 @@ class StepStats:
     terms: dict[str, Tensor]
     out: RenderOutput
     batch: TrainBatch
+    applied: bool = True
+    """False when the step was skipped for a non-finite loss or gradient."""
+
+
+class TrainingDiverged(UserError):
+    """Too many consecutive steps had non-finite losses or gradients."""
 
 
 def regularization(weights: LossConfig, planes: PlaneGrids) -> dict[str, Tensor]:
@@ -111,9 +117,10 @@ class Trainer:
         torch.manual_seed(config.seed)
         self.generator = torch.Generator().manual_seed(config.seed)
 
+        # The renderer first: a machine that cannot run it should say so before any loading.
+        self.renderer = config.renderer.build()
         self.scene = scene or load_scene(config.data, config.dataset, seed=config.seed)
         self.data = DataManager(self.scene, config.dataset, self.device, self.generator)
-        self.renderer = config.renderer.build()
         self.background = self.scene.background.to(self.device, torch.float32)
         self.extent = camera_extent(self.scene)
 
@@ -128,6 +135,8 @@ class Trainer:
         self._arap: tuple[Tensor, Tensor] | None = None
         self.step = 0
         self.train_seconds = 0.0
+        self.skipped_steps = 0
+        self.bad_streak = 0
 
     # ------------------------------------------------------------------ one step
 
@@ -152,7 +161,8 @@ class Trainer:
         gaussians = self.model.at(batch.time, self.sh_degree(step), deform=deform)
         out = self.renderer(gaussians, batch.camera, self.background)
 
-        terms = {"photometric": photometric(out.rgb, batch.image, cfg.losses.dssim, batch.mask)}
+        mask = batch.mask if cfg.losses.masked else None
+        terms = {"photometric": photometric(out.rgb, batch.image, cfg.losses.dssim, mask)}
         if deform:
             terms |= regularization(cfg.losses, self.model.field.planes())
             if cfg.losses.arap > 0:
@@ -160,11 +170,32 @@ class Trainer:
         loss = torch.stack(list(terms.values())).sum()
         loss.backward()
 
-        accumulate(self.densify_state, out, batch.camera.width, batch.camera.height)
-        self.optimizer.step()
+        # A step whose loss or gradients are not finite never reaches the parameters, the
+        # optimizer's moments or the densification statistics (one host sync per step, as
+        # AMP's GradScaler does).
+        good = bool(self._all_finite(loss))
+        if good:
+            accumulate(self.densify_state, out, batch.camera.width, batch.camera.height)
+            self.optimizer.step()
+            self.bad_streak = 0
+        else:
+            self.skipped_steps += 1
+            self.bad_streak += 1
         self.optimizer.zero_grad(set_to_none=True)
-        self.refine(step + 1)
-        return StepStats(loss.detach(), {k: v.detach() for k, v in terms.items()}, out, batch)
+        if self.bad_streak >= cfg.max_bad_steps:
+            raise TrainingDiverged(
+                f"training stopped at step {step}: {self.bad_streak} consecutive steps had a "
+                f"non-finite loss or gradient; the last good checkpoint is {self.checkpoint_path()}"
+            )
+        if good:
+            self.refine(step + 1)
+        return StepStats(loss.detach(), {k: v.detach() for k, v in terms.items()}, out, batch, good)
+
+    def _all_finite(self, loss: Tensor) -> Tensor:
+        flags = [torch.isfinite(loss)]
+        for group in self.optimizer.param_groups:
+            flags += [torch.isfinite(p.grad).all() for p in group["params"] if p.grad is not None]
+        return torch.stack(flags).all()
 
     def rigidity(self, means_now: Tensor, t: float) -> Tensor:
         """Neighbour distances at time t against those at another random time."""
@@ -231,7 +262,9 @@ class Trainer:
                         info = self.log(stats, rate)
                         window_start, window_steps = time.perf_counter(), 0
                         if not self.console.is_terminal:  # logs and CI get plain lines
-                            self.console.print(f"step {self.step}/{cfg.max_iters}  {info}", highlight=False)
+                            self.console.print(
+                                f"step {self.step}/{cfg.max_iters}  {info}", highlight=False
+                            )
                     if cfg.image_every > 0 and self.step % cfg.image_every == 0:
                         self.writer.image("train/render", stats.out.rgb, self.step)
                         self.writer.image("train/ground_truth", stats.batch.image, self.step)
@@ -259,10 +292,12 @@ class Trainer:
             w.scalar(f"train/loss/{name}", float(value), self.step)
         w.scalar("train/psnr", quality, self.step)
         w.scalar("train/num_gaussians", n, self.step)
+        w.scalar("train/skipped_steps", self.skipped_steps, self.step)
         w.scalar("train/iterations_per_second", rate, self.step)
         for group in self.optimizer.param_groups:
             w.scalar(f"learning_rate/{group['name']}", group["lr"], self.step)
-        return f"loss {loss:.4f}  psnr {quality:5.2f}  gaussians {n:,}  {rate:.1f} it/s"
+        skipped = f"  skipped {self.skipped_steps}" if self.skipped_steps else ""
+        return f"loss {loss:.4f}  psnr {quality:5.2f}  gaussians {n:,}  {rate:.1f} it/s{skipped}"
 
     def evaluate(self) -> dict[str, Any]:
         split = self.config.eval_split
@@ -281,6 +316,7 @@ class Trainer:
             "num_gaussians": len(self.model.canonical),
             "train_seconds": self.train_seconds,
             "iterations": self.step,
+            "skipped_steps": self.skipped_steps,
             "renderer": "cuda-tile"
             if type(self.renderer).__name__.startswith("Cuda")
             else "cpu-reference",
@@ -304,6 +340,7 @@ class Trainer:
             {
                 "step": self.step,
                 "train_seconds": self.train_seconds,
+                "skipped_steps": self.skipped_steps,
                 "model": self.model.state_dict(),
                 "optimizer": self.optimizer.state_dict(),
                 "densify": self.densify_state.state_dict(),
@@ -326,4 +363,5 @@ class Trainer:
         torch.set_rng_state(state["torch_rng"].cpu())
         self.step = int(state["step"])
         self.train_seconds = float(state["train_seconds"])
+        self.skipped_steps = int(state.get("skipped_steps", 0))
         self._arap = None

@@ -1,0 +1,160 @@
+"""A trainer that never loses a run: non-finite steps are skipped and counted, a streak of
+them stops the run with its last good checkpoint, and Ctrl-C or SIGKILL lose nothing."""
+
+from __future__ import annotations
+
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+from dyngs.datamanagers.procedural import demo_path
+from dyngs.engine.checkpoint import load_checkpoint
+from dyngs.engine.trainer import TrainingDiverged
+from dyngs.renderers.base import RenderOutput
+from tests.engine.helpers import TINY_SCENE, tiny_trainer
+
+
+class PoisonedRenderer:
+    """Wraps a renderer and returns NaN images on chosen calls."""
+
+    def __init__(self, inner, bad_calls: set[int]) -> None:  # type: ignore[no-untyped-def]
+        self.inner, self.bad_calls, self.calls = inner, bad_calls, 0
+
+    def __call__(self, gaussians, camera, background) -> RenderOutput:  # type: ignore[no-untyped-def]
+        out = self.inner(gaussians, camera, background)
+        if self.calls in self.bad_calls:
+            out.rgb = out.rgb * float("nan")
+        self.calls += 1
+        return out
+
+
+def _snapshot(trainer) -> dict[str, torch.Tensor]:  # type: ignore[no-untyped-def]
+    return {k: v.clone() for k, v in trainer.model.state_dict().items()}
+
+
+def test_non_finite_steps_are_skipped_and_counted(tmp_path: Path) -> None:
+    trainer = tiny_trainer(tmp_path, warmup_iters=0)
+    trainer.renderer = PoisonedRenderer(trainer.renderer, bad_calls={1, 2})
+    trainer.train_step(0)
+    before = _snapshot(trainer)
+    moments = {
+        id(p): {k: v.clone() for k, v in s.items()} for p, s in trainer.optimizer.state.items()
+    }
+    for step in (1, 2):
+        stats = trainer.train_step(step)
+        assert not stats.applied and not torch.isfinite(stats.loss)
+    after = _snapshot(trainer)
+    assert all(torch.equal(before[k], after[k]) for k in before)  # nothing reached the parameters
+    for p, s in trainer.optimizer.state.items():
+        assert all(torch.equal(v, moments[id(p)][k]) for k, v in s.items())
+    assert trainer.skipped_steps == 2 and trainer.bad_streak == 2
+    assert trainer.train_step(3).applied and trainer.bad_streak == 0
+    assert torch.isfinite(trainer.model.canonical.means).all()
+
+
+def test_a_streak_of_bad_steps_stops_with_the_checkpoint_intact(tmp_path: Path) -> None:
+    trainer = tiny_trainer(tmp_path, warmup_iters=0, max_bad_steps=3)
+    trainer.train_step(0)
+    trainer.step = 1
+    trainer.save()
+    saved = load_checkpoint(trainer.checkpoint_path())
+    trainer.renderer = PoisonedRenderer(trainer.renderer, bad_calls=set(range(100)))
+    with pytest.raises(TrainingDiverged, match="3 consecutive steps had a non-finite loss"):
+        for step in range(1, 10):
+            trainer.train_step(step)
+    kept = load_checkpoint(trainer.checkpoint_path())
+    assert kept["step"] == 1
+    assert all(torch.equal(saved["model"][k], kept["model"][k]) for k in saved["model"])
+
+
+# ---------------------------------------------------------------- real processes
+
+
+def _train_command(run_dir: Path, max_iters: int) -> list[str]:
+    return [
+        sys.executable, "-m", "dyngs.cli", "hexplane-4dgs",
+        "--data", str(demo_path(TINY_SCENE)),
+        "--max-iters", str(max_iters), "--warmup-iters", "4", "--checkpoint-every", "2",
+        "--no-tensorboard", "--field.resolution", "8", "8", "8", "4", "--field.multires", "1",
+        "--field.features", "8", "--num-random-points", "500",
+        "--output-dir", str(run_dir.parent), "--run-name", run_dir.name,
+    ]  # fmt: skip
+
+
+def _checkpoint_step(run_dir: Path) -> int:
+    path = run_dir / "checkpoint.pt"
+    try:
+        return int(load_checkpoint(path)["step"]) if path.exists() else -1
+    except Exception:
+        return -1
+
+
+def _wait_for_step(
+    process: subprocess.Popen, run_dir: Path, step: int, timeout: float = 120
+) -> int:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        reached = _checkpoint_step(run_dir)
+        if reached >= step:
+            return reached
+        if process.poll() is not None:
+            raise AssertionError(f"training ended (code {process.returncode}) before step {step}")
+        time.sleep(0.05)
+    raise AssertionError(f"no checkpoint at step ≥ {step} within {timeout} s")
+
+
+def test_sigkill_at_a_random_step_then_resume_equals_an_uninterrupted_run(tmp_path: Path) -> None:
+    total = 24
+    env = dict(os.environ)
+    straight = tmp_path / "straight"
+    subprocess.run(
+        _train_command(straight, total), check=True, capture_output=True, env=env, timeout=300
+    )
+
+    killed = tmp_path / "killed"
+    kill_after = random.Random().randrange(4, total - 4)
+    process = subprocess.Popen(_train_command(killed, total), stdout=subprocess.DEVNULL,
+                               stderr=subprocess.DEVNULL, env=env)  # fmt: skip
+    try:
+        _wait_for_step(process, killed, kill_after)
+        time.sleep(random.Random().uniform(0, 0.3))  # land anywhere, even mid-write
+        process.send_signal(signal.SIGKILL)
+        process.wait(timeout=30)
+    finally:
+        if process.poll() is None:
+            process.kill()
+    at_kill = _checkpoint_step(killed)
+    assert 0 < at_kill < total, f"killed after step {kill_after}; checkpoint at {at_kill}"
+
+    subprocess.run([sys.executable, "-m", "dyngs.cli", "--resume", str(killed)], check=True,
+                   capture_output=True, env=env, timeout=300)  # fmt: skip
+    a = load_checkpoint(straight / "checkpoint.pt")
+    b = load_checkpoint(killed / "checkpoint.pt")
+    assert a["step"] == b["step"] == total
+    for key in a["model"]:
+        assert torch.equal(a["model"][key], b["model"][key]), f"{key} differs (killed at {at_kill})"
+    for key in ("densify", "data"):
+        assert str(a[key]) == str(b[key])
+
+
+def test_ctrl_c_saves_a_checkpoint_and_exits_cleanly(tmp_path: Path) -> None:
+    run = tmp_path / "interrupted"
+    process = subprocess.Popen(_train_command(run, 10_000), stdout=subprocess.PIPE,
+                               stderr=subprocess.STDOUT, text=True)  # fmt: skip
+    try:
+        _wait_for_step(process, run, 4)
+        process.send_signal(signal.SIGINT)
+        output, _ = process.communicate(timeout=60)
+    finally:
+        if process.poll() is None:
+            process.kill()
+    assert process.returncode == 130, output
+    assert "interrupted at step" in output and "Traceback" not in output
+    assert _checkpoint_step(run) >= 4
