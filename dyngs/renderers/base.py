@@ -59,6 +59,10 @@ class RenderOutput:
     opacity or a colour coefficient in use) and were culled: drawn nowhere, with zero
     gradient. A 0-d integer tensor on the render device, so that producing it never
     waits for the device; the caller decides when to read it."""
+    contribution: Float[Tensor, " N"] | None = None
+    """Each Gaussian's blending weight αT summed over the image's pixels (no gradient): how
+    much of the picture it makes, for pruning by importance. None where a renderer cannot
+    measure it."""
 
 
 class Renderer(Protocol):

@@ -92,6 +92,9 @@ class CpuReferenceRenderer:
         screen = project(gaussians, camera, self.guards, antialiased=self.config.antialiased)
         if screen.means2d.requires_grad:
             screen.means2d.retain_grad()
+        contribution = torch.zeros(
+            len(gaussians), dtype=screen.colors.dtype, device=screen.colors.device
+        )
         rgb, alpha, depth = rasterize(
             screen,
             camera.width,
@@ -100,6 +103,7 @@ class CpuReferenceRenderer:
             guards=self.guards,
             tile_size=self.config.tile_size,
             chunk_elements=self.config.chunk_elements,
+            contribution=contribution,
         )
         return RenderOutput(
             rgb=rgb,
@@ -109,6 +113,7 @@ class CpuReferenceRenderer:
             radii=torch.where(screen.visible[:, None], screen.extents.ceil(), 0).int(),
             visible=screen.visible,
             num_nonfinite=screen.num_nonfinite,
+            contribution=contribution,
         )
 
 
@@ -279,8 +284,13 @@ def rasterize(
     guards: Guards | None = None,
     tile_size: int = 8,
     chunk_elements: int = 1 << 20,
+    contribution: Float[Tensor, " N"] | None = None,
 ) -> tuple[Float[Tensor, "H W 3"], Float[Tensor, "H W 1"], Float[Tensor, "H W 1"]]:
-    """Composite projected Gaussians front to back; returns rgb, alpha and expected depth."""
+    """Composite projected Gaussians front to back; returns rgb, alpha and expected depth.
+
+    When `contribution` is given, each Gaussian's blending weights summed over the pixels
+    are added to it in place (without gradient).
+    """
     guards = guards or Guards()
     dtype, device = screen.colors.dtype, screen.colors.device
     tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
@@ -313,7 +323,7 @@ def rasterize(
         outputs.append(
             _composite_chunk(
                 screen, bins, chunk, depth_complexity, tiles_x, tile_size, basis,
-                log_opacity, pad_row, blended, guards,
+                log_opacity, pad_row, blended, guards, contribution, (width, height),
             )
         )  # fmt: skip
         done_tiles.append(chunk)
@@ -349,6 +359,8 @@ def _composite_chunk(
     pad_row: Float[Tensor, 6],
     blended: Float[Tensor, "N F"],
     guards: Guards,
+    contribution: Float[Tensor, " N"] | None = None,
+    image_size: tuple[int, int] = (0, 0),
 ) -> Float[Tensor, "C P F"]:
     """Front-to-back compositing of every pixel of `tiles`, each padded to K Gaussians."""
     slot = torch.arange(depth_complexity, device=tiles.device)
@@ -380,4 +392,14 @@ def _composite_chunk(
     # Transmittance only falls, so "stop before T would drop below the floor" is exactly
     # "drop every pair whose T after it is below the floor".
     weight = (alpha * before).masked_fill(transmit < guards.transmittance_min, 0)
+    if contribution is not None:
+        # Count only pixels inside the image (edge tiles overhang it). Padded slots have zero
+        # weight, so adding them to their stand-in row is harmless.
+        local = torch.arange(tile_size, device=tiles.device)
+        cols = (tiles % tiles_x)[:, None] * tile_size + local
+        rows_ = (tiles // tiles_x)[:, None] * tile_size + local
+        inside = (rows_[:, :, None] < image_size[1]) & (cols[:, None, :] < image_size[0])
+        inside = inside.reshape(len(tiles), -1, 1).to(weight.dtype)
+        per_pair = (weight.detach() * inside).sum(dim=1).reshape(-1).to(contribution.dtype)
+        contribution.index_add_(0, gid.reshape(-1), per_pair)
     return weight @ gather(blended, gid)

@@ -50,6 +50,7 @@ class OracleResult:
     depth: Tensor  # [H, W, 1] float64
     touches: Tensor  # [N] bool: some pixel has α ≥ 1/255 for this Gaussian (early stop ignored)
     fragile: Tensor  # [H, W] bool: a threshold decision here is close enough to flip in float32
+    contribution: Tensor  # [N] float64: each Gaussian's blending weight summed over pixels
 
 
 def sh_basis(dirs: Tensor, degree: int) -> Tensor:
@@ -187,6 +188,7 @@ def render_oracle(
     done = torch.zeros(n_px, dtype=torch.bool, device=dev)
     fragile = torch.zeros(n_px, dtype=torch.bool, device=dev)
     touches = torch.zeros(n, dtype=torch.bool, device=dev)
+    contribution = torch.zeros(n, dtype=torch.float64, device=dev)
 
     idx = torch.nonzero(keep).reshape(-1)
     order = idx[torch.sort(z[idx], stable=True).indices].tolist()
@@ -207,6 +209,7 @@ def render_oracle(
         acc_c += wgt[:, None] * rgb_g[g]
         acc_d += wgt * z[g]
         acc_a += wgt
+        contribution[g] = wgt.sum()
         trans = torch.where(draw, test, trans)
 
     rgb = acc_c + trans[:, None] * bg
@@ -217,4 +220,5 @@ def render_oracle(
         depth=depth.reshape(h, w, 1).to(out_device),
         touches=touches.to(out_device),
         fragile=fragile.reshape(h, w).to(out_device),
+        contribution=contribution.to(out_device),
     )

@@ -55,6 +55,11 @@ def test_float64_matches_oracle(seed: int, tile_size: int) -> None:
     # Every Gaussian that reaches α ≥ 1/255 somewhere is inside the drawn set: the screen
     # extent never drops a pixel.
     assert bool((out.visible | ~ref.touches).all())
+    # Each Gaussian's share of the picture (importance pruning reads it) is the oracle's,
+    # counting only pixels inside the image although edge tiles overhang it.
+    assert out.contribution is not None and out.contribution.dtype == torch.float64
+    assert _max_abs(out.contribution, ref.contribution) <= 1e-9 * width * height
+    assert float(ref.contribution.max()) > 1.0
 
 
 @pytest.mark.parametrize("seed", range(6))
