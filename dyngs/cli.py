@@ -104,7 +104,7 @@ def run_training(
             trainer.load(run_dir / CHECKPOINT_NAME)
             console.print(f"resuming {run_dir} at step {trainer.step}")
         else:
-            save_config(run_dir / "config.json", config)
+            save_config(run_dir / "config.json", trainer.config)  # with data-sized values
         metrics = trainer.train()
         atomic_write_text(run_dir / "metrics.json", json.dumps(metrics, indent=2) + "\n")
     finally:

@@ -16,6 +16,7 @@ import tyro
 
 from dyngs.datamanagers.datamanager import DataConfig
 from dyngs.engine.densify import DensifyConfig
+from dyngs.engine.motion import MotionConfig
 from dyngs.engine.optim import OptimConfig
 from dyngs.errors import ConfigError
 from dyngs.fields.heads import DeformationHeadConfig
@@ -71,8 +72,15 @@ class TrainConfig:
     """Folder name of this run (default: method, dataset and start time)."""
     max_iters: int = 3000
     """Training iterations, warm-up included."""
-    warmup_iters: int = 500
+    warmup_iters: int = 200
     """Static warm-up: the canonical Gaussians alone are fitted for this many iterations."""
+    warmup_time: float = 0.05
+    """During the warm-up, train only on views with t ≤ this, so the canonical Gaussians are a
+    sharp picture of the start of the sequence rather than a blur of all of it."""
+    time_ramp: float = 0.5
+    """Fraction of the run over which the training views' time window then widens from
+    `warmup_time` to the whole sequence (0: all times at once). Motion is learned forward in
+    time, following objects, instead of bridging large displacements in one go."""
     seed: int = 0
     """Seeds every random choice (initialisation, view order, densification)."""
     device: str = "auto"
@@ -87,6 +95,7 @@ class TrainConfig:
     losses: LossConfig = dataclasses.field(default_factory=LossConfig)
     optim: OptimConfig = dataclasses.field(default_factory=OptimConfig)
     densify: DensifyConfig = dataclasses.field(default_factory=DensifyConfig)
+    motion: MotionConfig = dataclasses.field(default_factory=MotionConfig)
     max_bad_steps: int = 20
     """Stop when this many consecutive steps have a non-finite loss or gradient (such steps
     are skipped and counted; the last good checkpoint is kept)."""
@@ -108,6 +117,10 @@ class TrainConfig:
             raise ConfigError(f"--max-iters must be ≥ 0, got {self.max_iters}")
         if self.warmup_iters < 0:
             raise ConfigError(f"--warmup-iters must be ≥ 0, got {self.warmup_iters}")
+        if not 0.0 <= self.warmup_time <= 1.0:
+            raise ConfigError(f"--warmup-time must be in [0, 1], got {self.warmup_time}")
+        if not 0.0 <= self.time_ramp <= 1.0:
+            raise ConfigError(f"--time-ramp must be in [0, 1], got {self.time_ramp}")
         if self.max_bad_steps < 1:
             raise ConfigError(f"--max-bad-steps must be ≥ 1, got {self.max_bad_steps}")
         if self.eval_split not in ("train", "val", "test"):

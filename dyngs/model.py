@@ -33,13 +33,21 @@ class GaussianConfig:
     sh_degree: int = 3
     """Highest spherical-harmonic degree of the colour model."""
     sh_degree_interval: int = 1000
-    """Raise the active SH degree by one every this many iterations (3DGS schedule)."""
+    """Every this many iterations the active SH degree may rise by one (3DGS's schedule)."""
+    sh_evidence: float = 0.5
+    """… but only when view-dependent error asks for it: while a band is frozen at zero its
+    gradient is gathered over the views, and the degree rises when that gradient is this
+    consistent (Σ_g |Σ_v ∂L/∂band| / Σ_g Σ_v |∂L/∂band|): about 1/√views for error that does
+    not depend on the view, 2/3 for a tint linear in the view direction. 0: rise on
+    schedule regardless (3DGS)."""
     init_opacity: float = 0.1
     """Opacity of every initial Gaussian (Kerbl et al. 2023)."""
     init_scale_neighbors: int = 3
     """Initial scale: mean distance to this many nearest initial points (Kerbl et al. 2023)."""
-    max_init_points: int = 50_000
-    """Initial points beyond this many are subsampled (seeded)."""
+    max_init_points: int | None = None
+    """Initial points beyond this many are subsampled (seeded). None: the data-sized
+    Gaussian budget (dyngs/capacity.py), so that a dense or random cloud never starts a
+    scene above what it needs."""
 
 
 def _logit(p: float) -> float:
@@ -78,8 +86,9 @@ class CanonicalGaussians(nn.Module):
         config: GaussianConfig,
         generator: torch.Generator,
     ) -> CanonicalGaussians:
-        if len(points) > config.max_init_points:
-            keep = torch.randperm(len(points), generator=generator)[: config.max_init_points]
+        limit = config.max_init_points
+        if limit is not None and len(points) > limit:
+            keep = torch.randperm(len(points), generator=generator)[:limit]
             points = points[keep]
             colors = None if colors is None else colors[keep]
         points = points.float()
@@ -135,11 +144,17 @@ def activate(
     )
 
 
+def _check_time(t: float) -> None:
+    if not 0.0 <= t <= 1.0 or math.isnan(t):
+        raise ValueError(f"time must be in [0, 1], got {t}")
+
+
 class DynamicGaussians(nn.Module):
     """Canonical Gaussians deformed over time by `head(field(μ, t))`.
 
     `dynamic` marks the Gaussians that are deformed; the others are drawn from their
-    canonical parameters and never query the field.
+    canonical parameters and never query the field (dyngs/engine/motion.py decides which).
+    When none is dynamic, the model is a static 3DGS model and the field is never run.
     """
 
     dynamic: Tensor
@@ -163,8 +178,7 @@ class DynamicGaussians(nn.Module):
         self, t: float, index: Int[Tensor, " M"] | None = None
     ) -> tuple[Deltas, Int[Tensor, " M"] | None]:
         """Deformation of the Gaussians in `index` (default: every dynamic one) at time t."""
-        if not 0.0 <= t <= 1.0 or math.isnan(t):
-            raise ValueError(f"time must be in [0, 1], got {t}")
+        _check_time(t)
         means = self.canonical.means
         if index is None and not bool(self.dynamic.all()):
             index = self.dynamic.nonzero().squeeze(1)
@@ -172,13 +186,17 @@ class DynamicGaussians(nn.Module):
         times = xyz.new_full((len(xyz), 1), t)
         return self.head(self.field(xyz, times)), index
 
+    def any_dynamic(self) -> bool:
+        return bool(self.dynamic.any())
+
     def raw_at(self, t: float, deform: bool = True) -> dict[str, Tensor]:
         """Raw (unactivated) parameters at time t, keyed like GAUSSIAN_PARAMS: the canonical
         ones plus the head's deltas (the canonical ones alone when `deform` is False).
         Exports read these; `at` activates them."""
+        _check_time(t)
         c = self.canonical
         raw: dict[str, Tensor] = dict(c.params())
-        if deform:
+        if deform and self.any_dynamic():
             d, index = self.deltas(t)
 
             def add(base: Tensor, delta: Tensor | None) -> Tensor:

@@ -252,6 +252,7 @@ class DataManager:
                 budget -= cost if cache else 0
                 served[id(split)] = _ServedSplit(split, self.device, cache)
             self._splits[name] = served[id(split)]
+        self._earliest = min(self._splits["train"].times, default=0.0)
         self._seed = int(torch.randint(0, 2**62, (1,), generator=generator))
         self._epoch = 0
         self._position = 0
@@ -270,15 +271,23 @@ class DataManager:
         generator = torch.Generator().manual_seed(self._seed + epoch)
         return torch.randperm(self.num_train, generator=generator).tolist()
 
-    def next_train(self) -> TrainBatch:
-        """The next training view; every view comes once per epoch, in shuffled order."""
-        if self._position >= len(self._order):
-            self._epoch += 1
-            self._position = 0
-            self._order = self._permutation(self._epoch)
-        index = self._order[self._position]
-        self._position += 1
+    def next_train(self, max_time: float = 1.0) -> TrainBatch:
+        """The next training view; every view comes once per epoch, in shuffled order.
+
+        Views later than `max_time` are passed over in this epoch (a time curriculum); if
+        none is that early, the earliest views stand in.
+        """
         served = self._splits["train"]
+        max_time = max(max_time, self._earliest)
+        while True:
+            if self._position >= len(self._order):
+                self._epoch += 1
+                self._position = 0
+                self._order = self._permutation(self._epoch)
+            index = self._order[self._position]
+            self._position += 1
+            if served.times[index] <= max_time:
+                break
         batch = served.batch(index)
         if self._position < len(self._order):
             served.read_ahead(self._order[self._position])

@@ -79,6 +79,10 @@ class ProceduralSceneConfig:
     """Validation views, drawn like the test views (0: the parser falls back to test)."""
     motion: bool = True
     """False: every object stays at its t = 0 pose (a static scene seen over time)."""
+    fixed_cameras: int = 0
+    """> 0: the train views come from this many cameras that never move, each seeing every
+    timestamp (a multi-view rig, like Panoptic or DyNeRF); 0: `views_per_time` cameras at
+    new places at each timestamp (like D-NeRF)."""
     seed: int = 0
     """Seeds the camera jitter and the point-cloud sampling."""
 
@@ -89,6 +93,8 @@ class ProceduralSceneConfig:
             raise ValueError("num_times, views_per_time and num_test must be ≥ 1")
         if self.num_val < 0:
             raise ValueError(f"num_val must be ≥ 0, got {self.num_val}")
+        if self.fixed_cameras < 0:
+            raise ValueError(f"fixed_cameras must be ≥ 0, got {self.fixed_cameras}")
 
 
 @dataclass(frozen=True)
@@ -365,15 +371,25 @@ def capture(config: ProceduralSceneConfig) -> dict[str, list[tuple[Camera, float
     """(camera, time) of every view, per split.
 
     Train: `views_per_time` cameras per timestamp, spread around the circle (golden-angle
-    steps between timestamps) with a little seeded jitter. Val and test: novel cameras at
+    steps between timestamps) with a little seeded jitter; or, with `fixed_cameras`, the
+    same ring of cameras at every timestamp. Val and test: novel cameras at
     times halfway between two train timestamps.
     """
     rng = np.random.default_rng(config.seed)
     lo, hi = ELEVATION_RANGE
     train: list[tuple[Camera, float]] = []
     steps = max(config.num_times - 1, 1)
+    rig = [
+        _camera_at(
+            config, 2 * math.pi * (j + 0.5) / config.fixed_cameras, lo + (hi - lo) * (j % 3) / 2
+        )
+        for j in range(config.fixed_cameras)
+    ]
     for k in range(config.num_times):
         t = k / steps if config.num_times > 1 else 0.0
+        if rig:
+            train += [(camera, t) for camera in rig]
+            continue
         for view in range(config.views_per_time):
             azimuth = 2 * math.pi * ((k * _GOLDEN) % 1.0 + view / config.views_per_time)
             azimuth += rng.uniform(-0.15, 0.15)

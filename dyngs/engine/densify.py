@@ -32,8 +32,8 @@ class DensifyConfig:
     """Densify Gaussians whose mean screen-space gradient (NDC units) exceeds this (3DGS)."""
     refine_every: int = 100
     """Iterations between densification steps."""
-    refine_start: int = 500
-    """First iteration that densifies."""
+    refine_start: int = 300
+    """First iteration that densifies (3DGS: 500 of 30k; our runs are shorter)."""
     refine_stop: float = 0.5
     """Stop densifying after this fraction of the run (3DGS: 15k of 30k)."""
     reset_opacity_every: int = 3000
@@ -50,8 +50,15 @@ class DensifyConfig:
     """After the first opacity reset, prune Gaussians larger than this fraction of the extent."""
     prune_screen_size: float = 20.0
     """… or wider than this many pixels on screen."""
-    max_gaussians: int = 300_000
-    """Never densify beyond this many Gaussians (the highest gradients go first)."""
+    prune_importance: float = 0.5
+    """Prune Gaussians that were seen but never made more than this many pixels' worth of
+    any view (blending weight summed over its pixels): even wholly wrong, such a Gaussian
+    moves a view's L1 by under half a pixel, so it buys nothing for its cost (the
+    accumulated-weight importance of LightGaussian, Fan et al. 2023). 0 switches it off."""
+    max_gaussians: int | None = None
+    """The Gaussian budget: densification never goes beyond it (highest gradients first). The
+    cap grows linearly toward it over the densification window. None: sized from the data
+    (dyngs/capacity.py)."""
 
 
 @dataclass
@@ -65,24 +72,96 @@ class TopologyChange:
 
 @dataclass
 class DensifyState:
+    """Per-Gaussian statistics gathered between two refinements."""
+
     grad_sum: Float[Tensor, " N"]
     count: Float[Tensor, " N"]
     max_radius: Float[Tensor, " N"]
+    importance: Float[Tensor, " N"]
+    """Largest share of one view's picture (blending weight summed over pixels) it made."""
+    pull: Float[Tensor, "N 3"]
+    """Σ ∂L/∂μ · (t - ½): the loss gradient with respect to a velocity the Gaussian does not
+    have (μ(t) = μ + v (t - ½)); large when it is pulled one way early and another late."""
+    pull_norm: Float[Tensor, " N"]
+    """Σ |∂L/∂μ · (t - ½)|, so that |pull| / pull_norm ∈ [0, 1] measures how consistently."""
+    sh_pull: Float[Tensor, "N 7 3"]
+    """Σ over views of the gradient of the first SH band not in use (frozen at zero; up to
+    7 coefficients per channel)."""
+    sh_pull_norm: Float[Tensor, " N"]
+    """Σ over views of that gradient's norm."""
 
     @staticmethod
     def zeros(n: int, device: torch.device) -> DensifyState:
-        return DensifyState(*(torch.zeros(n, device=device) for _ in range(3)))
+        def zeros(*shape: int) -> Tensor:
+            return torch.zeros(n, *shape, device=device)
+
+        return DensifyState(
+            zeros(), zeros(), zeros(), zeros(), zeros(3), zeros(), zeros(7, 3), zeros()
+        )
 
     def state_dict(self) -> dict[str, Tensor]:
-        return {"grad_sum": self.grad_sum, "count": self.count, "max_radius": self.max_radius}
+        return {name: getattr(self, name) for name in _STATE_NAMES}
 
     @staticmethod
     def from_state_dict(d: dict[str, Tensor]) -> DensifyState:
-        return DensifyState(d["grad_sum"], d["count"], d["max_radius"])
+        # Checkpoints from before these were measured: start them afresh.
+        fresh = DensifyState.zeros(len(d["count"]), d["count"].device)
+        fresh.importance.fill_(math.inf)
+        for name in _STATE_NAMES:
+            if name in d:
+                setattr(fresh, name, d[name])
+        return fresh
+
+    def pull_coherence(self) -> Float[Tensor, " N"]:
+        return self.pull.norm(dim=-1) / self.pull_norm.clamp_min(1e-30)
+
+    def sh_coherence(self) -> float:
+        """How consistently, over all Gaussians, the frozen band's gradient points one way."""
+        total = float(self.sh_pull_norm.sum())
+        return float(self.sh_pull.flatten(1).norm(dim=-1).sum()) / total if total > 0 else 0.0
 
 
-def accumulate(state: DensifyState, out: RenderOutput, width: int, height: int) -> None:
-    """Add one view's screen-space gradients (call after backward)."""
+_STATE_NAMES = (
+    "grad_sum",
+    "count",
+    "max_radius",
+    "importance",
+    "pull",
+    "pull_norm",
+    "sh_pull",
+    "sh_pull_norm",
+)
+
+
+def band_rows(degree: int) -> slice:
+    """Rows of band `degree` (≥ 1) in the SH coefficients without the DC term."""
+    return slice(degree * degree - 1, (degree + 1) * (degree + 1) - 1)
+
+
+def probe_band(state: DensifyState, sh_rest: Tensor, degree: int) -> None:
+    """Gather the gradient of band `degree`, which is rendered at zero but must not learn
+    yet, and clear it so that the optimizer leaves the band at zero."""
+    grad = sh_rest.grad
+    if grad is None:
+        return
+    with torch.no_grad():
+        rows = band_rows(degree)
+        band = grad[:, rows]
+        state.sh_pull[:, : band.shape[1]] += band.to(state.sh_pull.dtype)
+        state.sh_pull_norm += band.flatten(1).norm(dim=-1).to(state.sh_pull_norm.dtype)
+        grad[:, rows] = 0
+
+
+def accumulate(
+    state: DensifyState,
+    out: RenderOutput,
+    width: int,
+    height: int,
+    means_grad: Tensor | None = None,
+    time: float = 0.5,
+) -> None:
+    """Add one view's screen-space gradients, and the canonical means' gradient at its
+    time (call after backward)."""
     grad = out.means2d.grad
     if grad is None:
         return
@@ -95,11 +174,30 @@ def accumulate(state: DensifyState, out: RenderOutput, width: int, height: int) 
         state.count += seen.to(state.count.dtype)
         radius = out.radii.max(dim=-1).values.to(state.max_radius.dtype)
         state.max_radius.copy_(torch.maximum(state.max_radius, torch.where(seen, radius, 0)))
+        if out.contribution is None:  # a renderer that cannot measure it never prunes by it
+            state.importance.fill_(math.inf)
+        else:
+            share = out.contribution.to(state.importance.dtype)
+            state.importance.copy_(torch.maximum(state.importance, share))
+        if means_grad is not None:
+            pull = means_grad.to(state.pull.dtype) * (time - 0.5)
+            state.pull += pull
+            state.pull_norm += pull.norm(dim=-1)
 
 
 def is_refine_step(config: DensifyConfig, step: int, max_iters: int) -> bool:
     stop = config.refine_stop * max_iters
     return config.refine_start <= step <= stop and step % config.refine_every == 0 and step > 0
+
+
+def budget_at(config: DensifyConfig, step: int, max_iters: int) -> int:
+    """The Gaussian cap at `step`: a quarter of the budget when densification starts, growing
+    linearly to all of it by the end of the densification window."""
+    if config.max_gaussians is None:
+        return 2**62
+    stop = config.refine_stop * max_iters
+    progress = (step - config.refine_start) / max(stop - config.refine_start, 1)
+    return int(config.max_gaussians * (0.25 + 0.75 * min(max(progress, 0.0), 1.0)))
 
 
 def is_reset_step(config: DensifyConfig, step: int, max_iters: int) -> bool:
@@ -114,6 +212,7 @@ def plan_refinement(
     step: int,
     extent: float,
     generator: torch.Generator | None = None,
+    max_iters: int = 0,
 ) -> tuple[TopologyChange, dict[str, Tensor]] | None:
     """Decide clones, splits and prunes; returns the change and the new raw parameters."""
     c = model.canonical
@@ -122,6 +221,7 @@ def plan_refinement(
         avg = state.grad_sum / state.count.clamp_min(1)
         scale_max = c.log_scales.exp().max(dim=-1).values
         prune = torch.sigmoid(c.opacity_logits) < config.prune_opacity
+        prune |= (state.count > 0) & (state.importance < config.prune_importance)
         if config.reset_opacity_every > 0 and step > config.reset_opacity_every:
             prune |= scale_max > config.prune_world_size * extent
             prune |= state.max_radius > config.prune_screen_size
@@ -130,7 +230,7 @@ def plan_refinement(
         )
         grow = (avg >= config.grad_threshold) & ~prune
         # Respect the budget: each clone adds one, each split adds children - 1.
-        room = config.max_gaussians - (n - int(prune.sum()))
+        room = budget_at(config, step, max_iters) - (n - int(prune.sum()))
         if room <= 0:
             grow[:] = False
         elif int(grow.sum()) > room // max(config.split_children - 1, 1):

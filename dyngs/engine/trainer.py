@@ -15,6 +15,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 from torch import Tensor
 
+from dyngs.capacity import pixel_footprint, resolve_capacity
 from dyngs.config import LossConfig, TrainConfig
 from dyngs.datamanagers.base import SceneData
 from dyngs.datamanagers.datamanager import DataManager, TrainBatch, load_scene
@@ -27,9 +28,11 @@ from dyngs.engine.densify import (
     is_refine_step,
     is_reset_step,
     plan_refinement,
+    probe_band,
     reset_opacity_logits,
 )
 from dyngs.engine.evaluate import evaluate
+from dyngs.engine.motion import model_bytes, pixel_evidence, revisit, sample_times
 from dyngs.engine.optim import build_optimizer, set_learning_rates
 from dyngs.engine.writer import Writer
 from dyngs.errors import ConfigError, UserError
@@ -120,6 +123,7 @@ class Trainer:
         # The renderer first: a machine that cannot run it should say so before any loading.
         self.renderer = config.renderer.build()
         self.scene = scene or load_scene(config.data, config.dataset, seed=config.seed)
+        self.config = config = resolve_capacity(config, self.scene)
         self.data = DataManager(self.scene, config.dataset, self.device, self.generator)
         self.background = self.scene.background.to(self.device, torch.float32)
         self.extent = camera_extent(self.scene)
@@ -133,16 +137,56 @@ class Trainer:
         self.optimizer = build_optimizer(self.model, config.optim, self.extent)
         self.densify_state = DensifyState.zeros(len(canonical), self.device)
         self._arap: tuple[Tensor, Tensor] | None = None
+        self.pixel_size = pixel_footprint(self.scene)
+        self.motion_times = sample_times(self.scene.train.times, config.motion.samples)
         self.step = 0
+        self.active_sh = 0
+        # Gaussians the renderer culled for a non-finite parameter, summed over the steps
+        # since the last log line (a device tensor: counting never waits for the device).
+        self.nonfinite_culled = torch.zeros((), dtype=torch.long, device=self.device)
         self.train_seconds = 0.0
+        self.deformation_seconds = 0.0
         self.skipped_steps = 0
         self.bad_streak = 0
 
     # ------------------------------------------------------------------ one step
 
-    def sh_degree(self, step: int) -> int:
+    def probe_degree(self) -> int | None:
+        """The SH band rendered frozen at zero to gather evidence for it, if any."""
         g = self.config.gaussians
-        return min(g.sh_degree, step // max(g.sh_degree_interval, 1))
+        if g.sh_evidence > 0 and self.active_sh < g.sh_degree:
+            return self.active_sh + 1
+        return None
+
+    def consider_sh_degree(self, step: int) -> None:
+        """At each SH interval, raise the degree if the frozen band's evidence asks for it."""
+        g = self.config.gaussians
+        if self.active_sh >= g.sh_degree or step % max(g.sh_degree_interval, 1) != 0:
+            return
+        if g.sh_evidence <= 0:
+            self.active_sh += 1
+            return
+        evidence = self.densify_state.sh_coherence()
+        chance = 3 / math.sqrt(max(len(self.scene.train), 1))
+        self.writer.scalar("sh/evidence", evidence, self.step)
+        if evidence >= max(g.sh_evidence, chance):
+            self.active_sh += 1
+            self.console.print(
+                f"[sh] view-dependent error (evidence {evidence:.2f}): SH degree {self.active_sh}",
+                highlight=False,
+                markup=False,
+            )
+
+    def time_window(self, step: int) -> float:
+        """Latest time trained on at `step`: `warmup_time` through the warm-up, then widening
+        linearly to 1 over `time_ramp` of the run."""
+        cfg = self.config
+        if step < cfg.warmup_iters:
+            return cfg.warmup_time
+        ramp = cfg.time_ramp * cfg.max_iters
+        if ramp <= 0:
+            return 1.0
+        return min(1.0, cfg.warmup_time + (1 - cfg.warmup_time) * (step - cfg.warmup_iters) / ramp)
 
     def deforming(self, step: int) -> bool:
         return step >= self.config.warmup_iters
@@ -155,11 +199,17 @@ class Trainer:
         """One iteration: a view, a render, the losses, a gradient step, densification."""
         cfg = self.config
         set_learning_rates(self.optimizer, step / max(cfg.max_iters, 1))
-        batch = self.data.next_train()
-        deform = self.deforming(step)
+        batch = self.data.next_train(max_time=self.time_window(step))
+        if step == cfg.warmup_iters and cfg.motion.separate:
+            self.start_motion()
+        deform = self.deforming(step) and self.model.any_dynamic()
 
-        gaussians = self.model.at(batch.time, self.sh_degree(step), deform=deform)
+        started = time.perf_counter()
+        probe = self.probe_degree()
+        gaussians = self.model.at(batch.time, probe or self.active_sh, deform=deform)
+        self.deformation_seconds += time.perf_counter() - started if deform else 0.0
         out = self.renderer(gaussians, batch.camera, self.background)
+        self.nonfinite_culled += out.num_nonfinite.to(self.nonfinite_culled.device)
 
         mask = batch.mask if cfg.losses.masked else None
         terms = {"photometric": photometric(out.rgb, batch.image, cfg.losses.dssim, mask)}
@@ -175,7 +225,16 @@ class Trainer:
         # AMP's GradScaler does).
         good = bool(self._all_finite(loss))
         if good:
-            accumulate(self.densify_state, out, batch.camera.width, batch.camera.height)
+            if probe is not None:
+                probe_band(self.densify_state, self.model.canonical.sh_rest, probe)
+            accumulate(
+                self.densify_state,
+                out,
+                batch.camera.width,
+                batch.camera.height,
+                self.model.canonical.means.grad,
+                batch.time,
+            )
             self.optimizer.step()
             self.bad_streak = 0
         else:
@@ -212,13 +271,87 @@ class Trainer:
             means_other = self.model.at(other, 0, deform=True).means
         return arap_loss(means_now, means_other, neighbors, weights)
 
+    # ------------------------------------------------------- static / dynamic
+
+    def start_motion(self) -> None:
+        """End of the warm-up: with fixed cameras, only what their pixels see move starts
+        dynamic; otherwise everything does until its motion is measured."""
+        evidence = pixel_evidence(
+            self.model.canonical.means.detach(), self.scene.train, self.config.motion
+        )
+        if evidence is None:
+            return
+        self.model.dynamic = evidence.to(self.model.dynamic.device)
+        share = float(evidence.float().mean()) if len(evidence) else 0.0
+        self.console.print(
+            f"[motion] fixed cameras: {share:.1%} of the Gaussians sit where pixels change; "
+            "only those start dynamic",
+            highlight=False,
+            markup=False,
+        )
+        self.announce_static_scene(was_dynamic=True)
+
+    def is_motion_step(self, step: int) -> bool:
+        """Revisit the split every `motion.every` steps once training spans all times."""
+        cfg = self.config
+        return (
+            cfg.motion.separate
+            and self.deforming(step)
+            and self.time_window(step) >= 1.0
+            and step % cfg.motion.every == 0
+        )
+
+    def revisit_motion(self, final: bool = False) -> None:
+        was_dynamic = self.model.any_dynamic()
+        state = self.densify_state
+        # A static Gaussian's region "keeps an error" when its screen gradient is high enough
+        # to densify for and its canonical gradient consistently asks for a velocity.
+        # Chance alone gives coherence ~1/√views: ask for three times that at least.
+        chance = 3 / math.sqrt(max(len(self.scene.train), 1))
+        mean_gradient = state.grad_sum / state.count.clamp_min(1)
+        wants_motion = (mean_gradient >= self.config.densify.grad_threshold) & (
+            state.pull_coherence() >= max(self.config.motion.pull_coherence, chance)
+        )
+        if final:  # nothing is left to learn: only measured motion decides
+            wants_motion[:] = False
+        became_static, became_dynamic = revisit(
+            self.model, self.config.motion, self.motion_times, self.pixel_size, wants_motion
+        )
+        self.writer.scalar("motion/became_static", became_static, self.step)
+        self.writer.scalar("motion/became_dynamic", became_dynamic, self.step)
+        self.announce_static_scene(was_dynamic)
+
+    def announce_static_scene(self, was_dynamic: bool) -> None:
+        if was_dynamic and not self.model.any_dynamic():
+            self.console.print(
+                f"[motion] nothing in this scene moves more than {self.config.motion.static_pixels}"
+                " px: training on as a static scene, without the deformation field",
+                highlight=False,
+                markup=False,
+            )
+
+    def dynamic_fraction(self) -> float:
+        dynamic = self.model.dynamic
+        if not self.deforming(self.step):
+            return 0.0
+        return float(dynamic.float().mean()) if len(dynamic) else 0.0
+
     # ------------------------------------------------------------ densification
 
     def refine(self, step: int) -> None:
         cfg = self.config
+        if self.is_motion_step(step):
+            self.revisit_motion()
+        self.consider_sh_degree(step)
         if is_refine_step(cfg.densify, step, cfg.max_iters):
             plan = plan_refinement(
-                cfg.densify, self.model, self.densify_state, step, self.extent, self.generator
+                cfg.densify,
+                self.model,
+                self.densify_state,
+                step,
+                self.extent,
+                self.generator,
+                cfg.max_iters,
             )
             if plan is not None:
                 self.apply_topology(*plan)
@@ -279,6 +412,8 @@ class Trainer:
                     f"Resume with: dyngs-train --resume {self.run_dir}"
                 )
                 raise
+        if cfg.motion.separate and self.deforming(self.step):
+            self.revisit_motion(final=True)
         self.save()
         return self.evaluate()
 
@@ -286,18 +421,38 @@ class Trainer:
         loss = float(stats.loss)
         quality = float(psnr(stats.out.rgb.detach(), stats.batch.image))
         n = len(self.model.canonical)
+        capacity = self.capacity()
         w = self.writer
         w.scalar("train/loss", loss, self.step)
         for name, value in stats.terms.items():
             w.scalar(f"train/loss/{name}", float(value), self.step)
         w.scalar("train/psnr", quality, self.step)
         w.scalar("train/num_gaussians", n, self.step)
+        for key, amount in capacity.items():
+            w.scalar(f"train/{key}", amount, self.step)
         w.scalar("train/skipped_steps", self.skipped_steps, self.step)
         w.scalar("train/iterations_per_second", rate, self.step)
         for group in self.optimizer.param_groups:
             w.scalar(f"learning_rate/{group['name']}", group["lr"], self.step)
+        culled = int(self.nonfinite_culled)
+        self.nonfinite_culled.zero_()
+        w.scalar("train/nonfinite_gaussians_culled", culled, self.step)
         skipped = f"  skipped {self.skipped_steps}" if self.skipped_steps else ""
-        return f"loss {loss:.4f}  psnr {quality:5.2f}  gaussians {n:,}  {rate:.1f} it/s{skipped}"
+        skipped += f"  culled non-finite {culled}" if culled else ""
+        return (
+            f"loss {loss:.4f}  psnr {quality:5.2f}  gaussians {n:,}  "
+            f"dynamic {capacity['dynamic_fraction']:.1%}  "
+            f"{capacity['model_bytes'] / 2**20:.1f} MiB  {rate:.1f} it/s{skipped}"
+        )
+
+    def capacity(self) -> dict[str, float]:
+        """What the model costs: dynamic share, stored size, time spent deforming."""
+        return {
+            "dynamic_fraction": self.dynamic_fraction(),
+            "model_bytes": model_bytes(self.model, self.active_sh),
+            "deformation_seconds": self.deformation_seconds,
+            "deformation_share": self.deformation_seconds / max(self.train_seconds, 1e-9),
+        }
 
     def evaluate(self) -> dict[str, Any]:
         split = self.config.eval_split
@@ -306,7 +461,7 @@ class Trainer:
             self.renderer,
             self.data,
             split,
-            sh_degree=self.sh_degree(self.step),
+            sh_degree=self.active_sh,
             deform=self.deforming(self.step),
             image_dir=self.run_dir / split,
             device=self.device,
@@ -314,6 +469,8 @@ class Trainer:
         )
         metrics |= {
             "num_gaussians": len(self.model.canonical),
+            **self.capacity(),
+            "static_scene": self.config.motion.separate and not self.model.any_dynamic(),
             "train_seconds": self.train_seconds,
             "iterations": self.step,
             "skipped_steps": self.skipped_steps,
@@ -339,7 +496,9 @@ class Trainer:
             self.checkpoint_path(),
             {
                 "step": self.step,
+                "active_sh": self.active_sh,
                 "train_seconds": self.train_seconds,
+                "deformation_seconds": self.deformation_seconds,
                 "skipped_steps": self.skipped_steps,
                 "model": self.model.state_dict(),
                 "optimizer": self.optimizer.state_dict(),
@@ -362,6 +521,8 @@ class Trainer:
         self.generator.set_state(state["generator"].cpu())
         torch.set_rng_state(state["torch_rng"].cpu())
         self.step = int(state["step"])
+        self.active_sh = int(state.get("active_sh", 0))
         self.train_seconds = float(state["train_seconds"])
         self.skipped_steps = int(state.get("skipped_steps", 0))
+        self.deformation_seconds = float(state.get("deformation_seconds", 0.0))
         self._arap = None

@@ -58,7 +58,7 @@ from dyngs.config import TrainConfig
 from dyngs.configio import load_config
 from dyngs.engine.trainer import CHECKPOINT_NAME
 from dyngs.errors import ConfigError, UserError
-from dyngs.fields.hexplane import HexPlaneConfig
+from dyngs.fields.hexplane import DEFAULT_RESOLUTION, HexPlaneConfig
 from dyngs.fields.mlp import MLPFieldConfig
 from dyngs.tools.common import renderer_name, run_tool
 from dyngs.tools.eval import write_json
@@ -105,9 +105,22 @@ SWEEPS: dict[str, Sweep] = {
             {"gaussians.sh-degree": "0"},
         )
     ),
+    "adaptive": Sweep(
+        points=(
+            {},
+            {
+                "motion.separate": "false",
+                "densify.max-gaussians": "3000000",
+                "densify.prune-importance": "0",
+                "gaussians.sh-evidence": "0",
+            },
+        )
+    ),
 }
 """Built-in sweeps (`--sweep NAME`). `tradeoffs` changes one thing at a time from the
-preset (with --train-args applied to every point); the others sweep one axis."""
+preset (with --train-args applied to every point); `adaptive` compares the preset with
+everything dynamic, no Gaussian budget and the SH schedule of 3DGS; the others sweep one
+axis."""
 
 
 @dataclass(frozen=True)
@@ -119,8 +132,8 @@ class BenchConfig:
     output_dir: Path = Path("outputs/bench")
     """Points go to OUTPUT_DIR/points/<name>/; results.{csv,json,png} to OUTPUT_DIR."""
     sweep: str | None = None
-    """A built-in sweep (iterations, budget, sh, fields, renderers, tradeoffs), or a sweep file
-    (.toml or .json, format above)."""
+    """A built-in sweep (iterations, budget, sh, fields, renderers, tradeoffs, adaptive), or a
+    sweep file (.toml or .json, format above)."""
     grid: tuple[str, ...] = ()
     """Axes KEY=V1,V2,… added to the sweep, e.g. `max-iters=500,1000 field=hexplane,mlp`."""
     method: str | None = None
@@ -352,7 +365,7 @@ def _describe(config: TrainConfig) -> dict[str, Any]:
     field = config.field
     if isinstance(field, HexPlaneConfig):
         field_name = "hexplane"
-        resolution = "x".join(str(r) for r in field.resolution)
+        resolution = "x".join(str(r) for r in field.resolution or DEFAULT_RESOLUTION)
         resolution += "" if field.multires == (1,) else f"@{'/'.join(map(str, field.multires))}"
     else:
         field_name = "mlp" if isinstance(field, MLPFieldConfig) else type(field).__name__
@@ -363,7 +376,7 @@ def _describe(config: TrainConfig) -> dict[str, Any]:
         "hexplane_resolution": resolution,
         "renderer": renderer_name(config.renderer),
         "max_iters": config.max_iters,
-        "sh_degree": config.gaussians.sh_degree,
+        "max_sh_degree": config.gaussians.sh_degree,
         "max_gaussians": config.densify.max_gaussians,
     }
 
@@ -374,8 +387,12 @@ RESULT_KEYS = (
     "lpips",
     "render_ms_median",
     "render_ms_p95",
+    "deformation_ms",
     "train_seconds",
     "num_gaussians",
+    "sh_degree",
+    "dynamic_fraction",
+    "model_bytes",
     "peak_memory_mb",
     "iterations",
     "device",
@@ -535,10 +552,12 @@ def results_table(rows: list[dict[str, Any]], front: set[int], title: str) -> Ta
         ("render ms", "render_ms_median", 1),
         ("train s", "train_seconds", 1),
         ("Gaussians", "num_gaussians", None),
+        ("dynamic", "dynamic_fraction", 2),
+        ("model bytes", "model_bytes", None),
     )
     for header, _, _ in columns:
         if header == "point":
-            table.add_column(header, no_wrap=True)
+            table.add_column(header, max_width=36, overflow="fold")
         else:
             table.add_column(header, justify="right")
     for i, row in enumerate(rows):

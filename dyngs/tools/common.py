@@ -153,6 +153,6 @@ def load_run(
         device=trainer.device,
         step=trainer.step,
         train_seconds=trainer.train_seconds,
-        sh_degree=trainer.sh_degree(trainer.step),
+        sh_degree=trainer.active_sh,
         deform=trainer.deforming(trainer.step),
     )

@@ -20,6 +20,7 @@ from rich.table import Table
 
 from dyngs.engine.checkpoint import atomic_write_text
 from dyngs.engine.evaluate import evaluate
+from dyngs.engine.motion import model_bytes
 from dyngs.errors import ConfigError
 from dyngs.tools.common import LoadedRun, RunOverrides, load_run, renderer_name, run_tool
 
@@ -73,6 +74,8 @@ def evaluate_run(
         "run_dir": str(run.run_dir),
         "method": run.config.method,
         "num_gaussians": len(run.model.canonical),
+        "dynamic_fraction": float(run.model.dynamic.float().mean()) if run.deform else 0.0,
+        "model_bytes": model_bytes(run.model, run.sh_degree),
         "train_seconds": run.train_seconds,
         "iterations": run.step,
         "sh_degree": run.sh_degree,
@@ -103,6 +106,9 @@ def eval_table(metrics: dict[str, Any]) -> Table:
         "render ms (p95)": metrics["render_ms_p95"],
         "peak MiB": metrics["peak_memory_mb"],
         "Gaussians": metrics["num_gaussians"],
+        "dynamic": metrics["dynamic_fraction"],
+        "model MiB": metrics["model_bytes"] / 2**20,
+        "deformation ms": metrics["deformation_ms"],
     }
     for name in columns:
         table.add_column(name, justify="right")

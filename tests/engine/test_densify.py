@@ -4,7 +4,7 @@ from pathlib import Path
 
 import torch
 
-from dyngs.engine.densify import DensifyConfig, apply_topology, plan_refinement
+from dyngs.engine.densify import DensifyConfig, apply_topology, budget_at, plan_refinement
 from dyngs.model import GAUSSIAN_PARAMS
 from tests.engine.helpers import tiny_trainer
 
@@ -56,10 +56,16 @@ def test_budget_caps_growth(tmp_path: Path) -> None:
     trainer = _train_a_little(tmp_path)
     model, state = trainer.model, trainer.densify_state
     n = len(model.canonical)
-    state.grad_sum[:] = torch.rand(n)
+    state.grad_sum[:] = torch.rand(n, generator=torch.Generator().manual_seed(0)) * 1e-2
     state.count[:] = 1.0
-    plan = plan_refinement(
-        DensifyConfig(max_gaussians=n + 10), model, state, step=100, extent=trainer.extent
-    )
+    config = DensifyConfig(max_gaussians=n + 10, refine_start=0, refine_stop=0.5)
+    plan = plan_refinement(config, model, state, step=1000, extent=trainer.extent, max_iters=1000)
     assert plan is not None
-    assert len(plan[0].source) <= n + 10
+    assert n < len(plan[0].source) <= n + 10
+
+
+def test_budget_grows_on_a_schedule() -> None:
+    config = DensifyConfig(max_gaussians=1000, refine_start=100, refine_stop=0.5)
+    caps = [budget_at(config, step, max_iters=1100) for step in (0, 100, 325, 550, 1000)]
+    assert caps == [250, 250, 625, 1000, 1000]
+    assert budget_at(DensifyConfig(max_gaussians=None), 10, 100) > 10**12

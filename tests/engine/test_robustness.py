@@ -17,6 +17,7 @@ import torch
 from dyngs.datamanagers.procedural import demo_path
 from dyngs.engine.checkpoint import load_checkpoint
 from dyngs.engine.trainer import TrainingDiverged
+from dyngs.engine.writer import NullWriter
 from dyngs.renderers.base import RenderOutput
 from tests.engine.helpers import TINY_SCENE, tiny_trainer
 
@@ -57,6 +58,31 @@ def test_non_finite_steps_are_skipped_and_counted(tmp_path: Path) -> None:
     assert trainer.skipped_steps == 2 and trainer.bad_streak == 2
     assert trainer.train_step(3).applied and trainer.bad_streak == 0
     assert torch.isfinite(trainer.model.canonical.means).all()
+
+
+class _Scalars(NullWriter):
+    def __init__(self) -> None:
+        self.values: dict[str, float] = {}
+
+    def scalar(self, tag: str, value: float, step: int) -> None:
+        self.values[tag] = value
+
+
+def test_gaussians_with_nan_parameters_are_culled_counted_and_reported(tmp_path: Path) -> None:
+    trainer = tiny_trainer(tmp_path, warmup_iters=0)
+    trainer.writer = writer = _Scalars()
+    with torch.no_grad():
+        trainer.model.canonical.means[3, 1] = float("nan")
+        trainer.model.canonical.log_scales[7, 0] = float("inf")
+    stats = trainer.train_step(0)
+    assert stats.applied and torch.isfinite(stats.loss)  # culled, never propagated
+    others = torch.ones(len(trainer.model.canonical), dtype=torch.bool)
+    others[[3, 7]] = False
+    assert torch.isfinite(trainer.model.canonical.means[others]).all()
+    info = trainer.log(stats, rate=1.0)
+    assert "culled non-finite 2" in info
+    assert writer.values["train/nonfinite_gaussians_culled"] == 2
+    assert "culled" not in trainer.log(stats, rate=1.0)  # counted per log interval
 
 
 def test_a_streak_of_bad_steps_stops_with_the_checkpoint_intact(tmp_path: Path) -> None:

@@ -22,6 +22,7 @@ EVAL_KEYS = {
     "split", "num_frames", "psnr", "ssim", "lpips", "render_ms", "render_ms_median",
     "render_ms_p95", "warmup_renders", "peak_memory_mb", "peak_memory_source", "frames",
     "num_gaussians", "train_seconds", "iterations", "renderer", "device", "sh_degree",
+    "deformation_ms", "dynamic_fraction", "model_bytes",
 }  # fmt: skip
 
 

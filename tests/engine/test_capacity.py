@@ -1,0 +1,88 @@
+"""Capacity sized from the data: HexPlane grid, Gaussian budget, importance pruning."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+from dyngs.capacity import (
+    BUDGET_LIMITS,
+    distinct_viewpoints,
+    gaussian_budget,
+    hexplane_resolution,
+    pixel_footprint,
+    resolve_capacity,
+)
+from dyngs.config import TrainConfig
+from dyngs.datamanagers.datamanager import DataConfig, load_scene
+from dyngs.datamanagers.procedural import demo_path
+from dyngs.engine.densify import DensifyConfig, DensifyState, plan_refinement
+from dyngs.fields.hexplane import HexPlaneConfig
+from tests.engine.helpers import TINY_SCENE, tiny_trainer
+
+
+def _scene(**changes: int):  # type: ignore[no-untyped-def]
+    return load_scene(str(demo_path(dataclasses.replace(TINY_SCENE, **changes))), DataConfig())
+
+
+def test_finer_images_and_more_timestamps_give_a_finer_grid() -> None:
+    coarse, fine = _scene(), _scene(resolution=64, num_times=12)
+    assert abs(pixel_footprint(coarse) / pixel_footprint(fine) - 2.0) < 0.05
+    rc, rf = hexplane_resolution(coarse), hexplane_resolution(fine)
+    for axis in range(3):  # a cell spans the same number of pixels at both resolutions
+        assert abs(rf[axis] - 2 * rc[axis]) <= 1, (rc, rf)
+    assert (rc[3], rf[3]) == (3, 6)  # one cell per two timestamps
+
+
+def test_the_budget_grows_with_pixels_and_viewpoints() -> None:
+    small, large = _scene(), _scene(resolution=128)
+    many_views = _scene(resolution=128, views_per_time=12)
+    assert distinct_viewpoints(many_views) > distinct_viewpoints(large)
+    budgets = [gaussian_budget(s) for s in (small, large, many_views)]
+    assert budgets[0] == BUDGET_LIMITS[0]  # 32² images: the floor
+    assert budgets[0] < budgets[1] < budgets[2]
+
+
+def test_explicit_sizes_are_kept_and_missing_ones_filled() -> None:
+    scene = _scene()
+    resolved = resolve_capacity(TrainConfig(), scene)
+    assert isinstance(resolved.field, HexPlaneConfig)
+    assert resolved.field.resolution == hexplane_resolution(scene)
+    assert resolved.densify.max_gaussians == gaussian_budget(scene)
+    assert resolved.gaussians.max_init_points == gaussian_budget(scene)
+    explicit = TrainConfig(
+        field=HexPlaneConfig(resolution=(5, 6, 7, 8)), densify=DensifyConfig(max_gaussians=1234)
+    )
+    kept = resolve_capacity(explicit, scene)
+    assert kept.field == explicit.field and kept.densify.max_gaussians == 1234
+
+
+def test_gaussians_that_make_almost_nothing_of_any_view_are_pruned(tmp_path: Path) -> None:
+    trainer = tiny_trainer(tmp_path)
+    model = trainer.model
+    n = len(model.canonical)
+    state = DensifyState.zeros(n, trainer.device)
+    state.count[:] = 3.0
+    state.importance[:] = 10.0
+    state.importance[:5] = 0.1  # seen, but never half a pixel's worth of a view
+    state.count[5], state.importance[5] = 0.0, 0.0  # never seen in this window: kept
+    config = DensifyConfig(reset_opacity_every=0, grad_threshold=1.0)
+    plan = plan_refinement(config, model, state, 100, trainer.extent)
+    assert plan is not None
+    kept = set(plan[0].source.tolist())
+    assert kept == set(range(5, n))
+    off = dataclasses.replace(config, prune_importance=0.0)
+    assert plan_refinement(off, model, state, 100, trainer.extent) is None
+
+
+def test_the_renderer_measures_importance_during_training(tmp_path: Path) -> None:
+    trainer = tiny_trainer(tmp_path)
+    stats = trainer.train_step(0)
+    importance = trainer.densify_state.importance
+    seen = trainer.densify_state.count > 0
+    assert bool(seen.any())
+    # After one view, each Gaussian's importance is its share of that view's coverage.
+    total = float(stats.out.alpha.sum())
+    assert total > 10.0
+    assert abs(float(importance.sum()) - total) <= 1e-4 * total
+    assert not bool(importance[~seen].any())

@@ -1,0 +1,201 @@
+"""Static/dynamic separation: evidence from pixels, measured motion, and what follows."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import torch
+
+from dyngs.datamanagers.datamanager import DataConfig, load_scene
+from dyngs.datamanagers.procedural import ProceduralSceneConfig, demo_path, is_on_dynamic_object
+from dyngs.engine.densify import DensifyConfig, apply_topology, plan_refinement
+from dyngs.engine.motion import (
+    MotionConfig,
+    fixed_camera_groups,
+    measure_motion,
+    model_bytes,
+    pixel_evidence,
+    revisit,
+    sample_times,
+)
+from dyngs.engine.trainer import Trainer
+from dyngs.engine.writer import NullWriter
+from dyngs.fields.heads import Deltas
+from dyngs.model import CanonicalGaussians, DynamicGaussians, GaussianConfig
+from tests.engine.helpers import TINY_SCENE, tiny_config, tiny_trainer
+
+# A rig of six cameras that never move, watching the ball and the cube move.
+RIG = ProceduralSceneConfig(resolution=64, num_times=12, fixed_cameras=6, num_test=3, num_val=0)
+
+
+def _on_moving_object(points: torch.Tensor, config: ProceduralSceneConfig) -> torch.Tensor:
+    return torch.from_numpy(is_on_dynamic_object(points.double().numpy(), 0.0, config))
+
+
+def test_fixed_cameras_see_which_points_move() -> None:
+    scene = load_scene(str(demo_path(RIG)), DataConfig(), seed=0)
+    assert len(fixed_camera_groups(scene.train)) == RIG.fixed_cameras
+    moving = _on_moving_object(scene.points, RIG)
+    assert 100 < int(moving.sum()) < len(moving) // 2  # both kinds are well represented
+
+    evidence = pixel_evidence(scene.points, scene.train, MotionConfig())
+
+    assert evidence is not None
+    assert float(evidence[moving].float().mean()) >= 0.98  # the ball and the cube
+    assert float(evidence[~moving].float().mean()) <= 0.05  # the pedestal and the pillar
+
+
+def test_fixed_cameras_on_a_still_scene_see_nothing_move() -> None:
+    still = dataclasses.replace(RIG, motion=False)
+    scene = load_scene(str(demo_path(still)), DataConfig(), seed=0)
+    evidence = pixel_evidence(scene.points, scene.train, MotionConfig())
+    assert evidence is not None and not bool(evidence.any())
+
+
+def test_moving_cameras_give_no_pixel_evidence() -> None:
+    scene = load_scene(str(demo_path(TINY_SCENE)), DataConfig(), seed=0)
+    assert fixed_camera_groups(scene.train) == []
+    assert pixel_evidence(scene.points, scene.train, MotionConfig()) is None
+
+
+def test_sample_times_spread_over_the_distinct_times() -> None:
+    times = torch.tensor([0.0, 0.0, 0.25, 0.5, 0.5, 0.75, 1.0])
+    assert sample_times(times, 16) == [0.0, 0.25, 0.5, 0.75, 1.0]
+    assert sample_times(times, 3) == [0.0, 0.5, 1.0]
+
+
+class _ScriptedMotion(DynamicGaussians):
+    """Gaussian i moves by velocity[i] · t plus a constant offset, whatever the field says."""
+
+    def __init__(self, velocity: torch.Tensor, offset: torch.Tensor) -> None:
+        n = len(velocity)
+        canonical = CanonicalGaussians.from_points(
+            torch.randn(n, 3, generator=torch.Generator().manual_seed(0)),
+            None,
+            GaussianConfig(sh_degree=0),
+            torch.Generator().manual_seed(0),
+        )
+        with torch.no_grad():
+            canonical.log_scales.fill_(-6.0)  # tiny: travel is the centre's motion
+        super().__init__(canonical, torch.nn.Identity(), torch.nn.Identity(), None)  # type: ignore[arg-type]
+        self.velocity, self.offset = velocity, offset
+
+    def deltas(self, t, index=None):  # type: ignore[no-untyped-def,override]
+        rows = torch.arange(len(self.velocity)) if index is None else index
+        means = self.velocity[rows] * t + self.offset[rows]
+        return Deltas(means=means, quats=None, scales=None, opacities=None, colors=None), index
+
+
+def test_measured_motion_decides_and_baking_keeps_the_mean_pose() -> None:
+    velocity = torch.zeros(4, 3)
+    velocity[0, 0] = 1.0  # moves one unit over the sequence
+    velocity[1, 1] = 0.004  # moves a fifth of a pixel (pixel size below: 0.02)
+    offset = torch.full((4, 3), 0.3)  # a constant offset is no motion, just a shifted pose
+    model = _ScriptedMotion(velocity, offset)
+    times = [0.0, 0.5, 1.0]
+
+    motion = measure_motion(model, times)
+    assert torch.allclose(motion.travel, torch.tensor([0.5, 0.002, 0.0, 0.0]), atol=1e-6)
+
+    model.dynamic[3] = False  # static already, but its gradient asks for motion
+    before = model.canonical.means.detach().clone()
+    wants_motion = torch.tensor([False, False, False, True])
+    config = MotionConfig(static_pixels=0.5)
+    static_now, dynamic_now = revisit(model, config, times, 0.02, wants_motion)
+
+    assert (static_now, dynamic_now) == (2, 1)
+    assert model.dynamic.tolist() == [True, False, False, True]
+    # The demoted ones now sit at their mean pose for good.
+    mean_offset = offset + velocity * 0.5
+    after = model.canonical.means.detach()
+    assert torch.allclose(after[1:3], before[1:3] + mean_offset[1:3])
+    assert torch.equal(after[[0, 3]], before[[0, 3]])
+
+
+def test_a_static_gaussian_where_the_field_moves_becomes_dynamic() -> None:
+    velocity = torch.zeros(2, 3)
+    velocity[1, 2] = 1.0
+    model = _ScriptedMotion(velocity, torch.zeros(2, 3))
+    model.dynamic[:] = False
+    revisit(model, MotionConfig(), [0.0, 1.0], 0.02, torch.zeros(2, dtype=torch.bool))
+    assert model.dynamic.tolist() == [False, True]
+
+
+def test_model_bytes_count_the_field_only_while_something_moves(tmp_path: Path) -> None:
+    trainer = tiny_trainer(tmp_path)
+    model = trainer.model
+    n = len(model.canonical)
+    gaussians_only = n * 4 * (3 + 4 + 3 + 1 + 3) + -(-n // 8)
+    field = sum(p.numel() * 4 for p in [*model.field.parameters(), *model.head.parameters()])
+    assert model_bytes(model, 0) == gaussians_only + field
+    model.dynamic[:] = False
+    assert model_bytes(model, 0) == gaussians_only
+    assert model_bytes(model, 3) == gaussians_only + n * 4 * 3 * 15
+
+
+def test_flags_follow_densification_and_survive_resume(tmp_path: Path) -> None:
+    trainer = tiny_trainer(tmp_path)
+    for step in range(3):
+        trainer.train_step(step)
+    model, state = trainer.model, trainer.densify_state
+    n = len(model.canonical)
+    model.dynamic[: n // 2] = False
+    flags = model.dynamic.clone()
+    state.grad_sum[:] = torch.linspace(0, 1, n)
+    state.count[:] = 1.0
+    plan = plan_refinement(DensifyConfig(reset_opacity_every=0), model, state, 100, trainer.extent)
+    assert plan is not None
+    apply_topology(model, trainer.optimizer, *plan)
+    assert torch.equal(model.dynamic, flags[plan[0].source])  # children inherit
+    trainer.densify_state = type(state).zeros(len(model.canonical), trainer.device)
+    trainer.save()
+
+    resumed = Trainer(trainer.config, tmp_path, NullWriter())
+    resumed.load(trainer.checkpoint_path())
+    assert torch.equal(resumed.model.dynamic, model.dynamic)
+    resumed.train_step(3)
+
+
+def _field_calls(model: DynamicGaussians) -> list[int]:
+    calls: list[int] = []
+    model.field.register_forward_hook(lambda m, args, out: calls.append(args[0].shape[0]))
+    return calls
+
+
+def test_a_still_scene_trains_as_a_static_scene(tmp_path: Path) -> None:
+    still = dataclasses.replace(TINY_SCENE, motion=False)
+    config = tiny_config(
+        data=str(demo_path(still)),
+        max_iters=240,
+        warmup_iters=40,
+        time_ramp=0.0,
+        motion=MotionConfig(every=100),
+    )
+    trainer = Trainer(config, tmp_path, NullWriter())
+    metrics = trainer.train()
+
+    static = ~trainer.model.dynamic
+    assert float(static.float().mean()) >= 0.95
+    assert metrics["dynamic_fraction"] <= 0.05
+    calls = _field_calls(trainer.model)
+    trainer.model.at(0.5, 0)
+    assert metrics["static_scene"] is (not trainer.model.any_dynamic())
+    assert calls == ([] if metrics["static_scene"] else [int(trainer.model.dynamic.sum())])
+
+
+def test_the_rig_starts_only_the_moving_objects_dynamic(tmp_path: Path) -> None:
+    config = tiny_config(data=str(demo_path(RIG)), warmup_iters=1)
+    trainer = Trainer(config, tmp_path, NullWriter())
+    trainer.train_step(0)
+    trainer.train_step(1)  # the warm-up ends: the pixels decide
+
+    model = trainer.model
+    moving = _on_moving_object(model.canonical.means.detach(), RIG)
+    dynamic = model.dynamic
+    assert float(dynamic[moving].float().mean()) >= 0.98
+    assert float(dynamic[~moving].float().mean()) <= 0.1
+    # Only the dynamic ones query the field.
+    calls = _field_calls(model)
+    model.at(0.5, 0)
+    assert calls == [int(dynamic.sum())]
