@@ -111,6 +111,11 @@ class CanonicalGaussians(nn.Module):
     def params(self) -> dict[str, nn.Parameter]:
         return {name: getattr(self, name) for name in GAUSSIAN_PARAMS}
 
+    def finite_rows(self) -> Bool[Tensor, " N"]:
+        """Gaussians whose every raw parameter is finite (the others are culled when drawn)."""
+        rows = torch.cat([p.detach().reshape(len(self), -1) for p in self.params().values()], 1)
+        return torch.isfinite(rows).all(dim=1)
+
     def replace(self, values: dict[str, Tensor]) -> None:
         """Swap every per-Gaussian parameter for a new tensor (after densification or on
         loading a checkpoint with a different count)."""
@@ -183,6 +188,7 @@ class DynamicGaussians(nn.Module):
         if index is None and not bool(self.dynamic.all()):
             index = self.dynamic.nonzero().squeeze(1)
         xyz = means if index is None else means.index_select(0, index)
+        xyz = torch.where(xyz.isfinite().all(dim=-1, keepdim=True), xyz, 0.0)  # see raw_at
         times = xyz.new_full((len(xyz), 1), t)
         return self.head(self.field(xyz, times)), index
 
@@ -198,10 +204,17 @@ class DynamicGaussians(nn.Module):
         raw: dict[str, Tensor] = dict(c.params())
         if deform and self.any_dynamic():
             d, index = self.deltas(t)
+            # A Gaussian with a non-finite parameter is culled when drawn, but its activation
+            # still passes NaN back (exp(inf) · 0); cut its deltas off so that NaN never
+            # reaches the field and head, whose gradients every other Gaussian shares.
+            finite = c.finite_rows()
+            finite = finite if index is None else finite.index_select(0, index)
 
             def add(base: Tensor, delta: Tensor | None) -> Tensor:
                 if delta is None:
                     return base
+                mask = finite.reshape(-1, *[1] * (delta.dim() - 1))
+                delta = torch.where(mask, delta, 0.0)
                 return base + delta if index is None else base.index_add(0, index, delta)
 
             raw["means"] = add(c.means, d.means)

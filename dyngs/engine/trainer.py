@@ -219,6 +219,7 @@ class Trainer:
                 terms["arap"] = cfg.losses.arap * self.rigidity(gaussians.means, batch.time)
         loss = torch.stack(list(terms.values())).sum()
         loss.backward()
+        self._quarantine_nonfinite_gaussians()
 
         # A step whose loss or gradients are not finite never reaches the parameters, the
         # optimizer's moments or the densification statistics (one host sync per step, as
@@ -249,6 +250,16 @@ class Trainer:
         if good:
             self.refine(step + 1)
         return StepStats(loss.detach(), {k: v.detach() for k, v in terms.items()}, out, batch, good)
+
+    def _quarantine_nonfinite_gaussians(self) -> None:
+        """Zero the gradients of Gaussians with a non-finite parameter. The renderer culls
+        them, but activations still pass NaN back (exp(inf) · 0); left alone, one such
+        Gaussian would make every step non-finite. Refinement prunes them."""
+        c = self.model.canonical
+        bad = ~c.finite_rows()
+        for p in c.params().values():
+            if p.grad is not None:
+                p.grad.masked_fill_(bad.reshape(-1, *[1] * (p.dim() - 1)), 0.0)
 
     def _all_finite(self, loss: Tensor) -> Tensor:
         flags = [torch.isfinite(loss)]

@@ -82,7 +82,7 @@ def test_the_renderer_measures_importance_during_training(tmp_path: Path) -> Non
     seen = trainer.densify_state.count > 0
     assert bool(seen.any())
     # After one view, each Gaussian's importance is its share of that view's coverage.
-    total = float(stats.out.alpha.sum())
+    total = float(stats.out.alpha.detach().sum())
     assert total > 10.0
     assert abs(float(importance.sum()) - total) <= 1e-4 * total
     assert not bool(importance[~seen].any())

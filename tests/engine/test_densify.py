@@ -26,7 +26,7 @@ def test_clone_split_prune_keep_every_per_gaussian_tensor_in_step(tmp_path: Path
     with torch.no_grad():
         model.canonical.opacity_logits[-1] = -20.0
         model.canonical.log_scales[0] = 5.0  # huge: must be split, not cloned
-    config = DensifyConfig(reset_opacity_every=0)
+    config = DensifyConfig(reset_opacity_every=0, prune_importance=0.0)
     plan = plan_refinement(config, model, state, step=100, extent=trainer.extent)
     assert plan is not None
     change, values = plan
@@ -58,7 +58,9 @@ def test_budget_caps_growth(tmp_path: Path) -> None:
     n = len(model.canonical)
     state.grad_sum[:] = torch.rand(n, generator=torch.Generator().manual_seed(0)) * 1e-2
     state.count[:] = 1.0
-    config = DensifyConfig(max_gaussians=n + 10, refine_start=0, refine_stop=0.5)
+    config = DensifyConfig(
+        max_gaussians=n + 10, refine_start=0, refine_stop=0.5, prune_importance=0.0
+    )
     plan = plan_refinement(config, model, state, step=1000, extent=trainer.extent, max_iters=1000)
     assert plan is not None
     assert n < len(plan[0].source) <= n + 10

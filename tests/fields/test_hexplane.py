@@ -122,11 +122,12 @@ def test_plane_layout_and_views() -> None:
 
 
 def test_cubic_grid_groups_planes_of_equal_shape() -> None:
-    # At the defaults a scale is two Parameters: three 64×64 spatial, three 25×64 time planes.
+    # Without data to size it, a scale is two Parameters: three 64×64 spatial planes and
+    # three 25×64 time planes, 16 features each.
     field = HexPlaneConfig().build(BOX)
     shapes = [tuple(p.shape) for p in field.parameters()]
-    assert shapes == [(3, 32, 64, 64), (3, 32, 25, 64), (3, 32, 128, 128), (3, 32, 25, 128)]
-    assert field.out_dim == 64
+    assert shapes == [(3, 16, 64, 64), (3, 16, 25, 64), (3, 16, 128, 128), (3, 16, 25, 128)]
+    assert field.out_dim == 32
 
 
 def test_initialisation() -> None:
