@@ -381,8 +381,22 @@ class Trainer:
 
     # --------------------------------------------------------------- the loop
 
+    def schedule_warning(self) -> str | None:
+        """A one-line warning when the run is too short for densification to happen."""
+        cfg, d = self.config, self.config.densify
+        if cfg.max_iters > 0 and d.refine_start > d.refine_stop * cfg.max_iters:
+            return (
+                f"warning: no densification in this run: it would start at step "
+                f"{d.refine_start} and stop at {d.refine_stop:g} × {cfg.max_iters} = "
+                f"{d.refine_stop * cfg.max_iters:g} (lower --densify.refine-start)"
+            )
+        return None
+
     def train(self) -> dict[str, Any]:
         cfg = self.config
+        warning = self.schedule_warning()
+        if warning is not None and self.step < cfg.max_iters:
+            self.console.print(warning, highlight=False, markup=False)
         columns = (
             TextColumn("[bold]train"),
             BarColumn(),

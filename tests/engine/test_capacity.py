@@ -17,8 +17,10 @@ from dyngs.config import TrainConfig
 from dyngs.datamanagers.datamanager import DataConfig, load_scene
 from dyngs.datamanagers.procedural import demo_path
 from dyngs.engine.densify import DensifyConfig, DensifyState, plan_refinement
+from dyngs.engine.trainer import Trainer
+from dyngs.engine.writer import NullWriter
 from dyngs.fields.hexplane import HexPlaneConfig
-from tests.engine.helpers import TINY_SCENE, tiny_trainer
+from tests.engine.helpers import TINY_SCENE, tiny_config, tiny_trainer
 
 
 def _scene(**changes: int):  # type: ignore[no-untyped-def]
@@ -86,3 +88,11 @@ def test_the_renderer_measures_importance_during_training(tmp_path: Path) -> Non
     assert total > 10.0
     assert abs(float(importance.sum()) - total) <= 1e-4 * total
     assert not bool(importance[~seen].any())
+
+
+def test_a_run_too_short_to_densify_says_so(tmp_path: Path) -> None:
+    def warning(max_iters: int) -> str | None:
+        return Trainer(tiny_config(max_iters=max_iters), tmp_path, NullWriter()).schedule_warning()
+
+    assert "no densification in this run" in (warning(500) or "")  # window 300 … 250: empty
+    assert warning(1000) is None  # window 300 … 500

@@ -1,0 +1,81 @@
+"""Re-time trained runs: render and deformation time per frame, several times each.
+
+    python benchmarks/rerender.py outputs/bench/adaptive-demo/points/* --repeats 5
+
+A single evaluation's render time swings by tens of per cent on a shared machine (two
+runs of the same model have differed by 1.7×). This script evaluates every run folder
+`--repeats` times, each time in a fresh `dyngs-eval` process, interleaving the runs
+(A, B, A, B, …) so that slow spells hit them alike, and reports the median over the
+repeats of each evaluation's median frame time. Quality metrics are not re-reported:
+they do not change between evaluations.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import statistics
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import torch
+
+
+def evaluate_once(run: Path, split: str, output: Path) -> dict[str, float]:
+    command = [
+        sys.executable, "-m", "dyngs.tools.eval", "--load-dir", str(run), "--split", split,
+        "--output", str(output), "--no-save-images",
+    ]  # fmt: skip
+    subprocess.run(command, check=True, capture_output=True)
+    result = json.loads(output.read_text())
+    return {key: float(result[key]) for key in ("render_ms_median", "deformation_ms")}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("runs", type=Path, nargs="+", help="run folders (config + checkpoint)")
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--split", default="test")
+    parser.add_argument("--output", type=Path, default=Path("benchmarks/results/rerender.json"))
+    args = parser.parse_args()
+
+    samples: dict[Path, list[dict[str, float]]] = {run: [] for run in args.runs}
+    with tempfile.TemporaryDirectory() as scratch:
+        for repeat in range(args.repeats):
+            for i, run in enumerate(args.runs):
+                out = Path(scratch) / f"{i}_{repeat}.json"
+                samples[run].append(evaluate_once(run, args.split, out))
+                print(f"repeat {repeat + 1}/{args.repeats}  {run}  {samples[run][-1]}", flush=True)
+
+    rows = []
+    for run, values in samples.items():
+        row = {
+            "run": str(run),
+            "repeats": len(values),
+            "render_ms_median": statistics.median(v["render_ms_median"] for v in values),
+            "render_ms_spread": [min(v["render_ms_median"] for v in values),
+                                 max(v["render_ms_median"] for v in values)],
+            "deformation_ms": statistics.median(v["deformation_ms"] for v in values),
+        }  # fmt: skip
+        rows.append(row)
+        print(
+            f"{run}: render {row['render_ms_median']:.1f} ms "
+            f"(spread {row['render_ms_spread'][0]:.1f}-{row['render_ms_spread'][1]:.1f}), "
+            f"deformation {row['deformation_ms']:.2f} ms"
+        )
+    machine = {
+        "platform": platform.platform(),
+        "processor": platform.processor(),
+        "torch": torch.__version__,
+        "threads": torch.get_num_threads(),
+    }
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    args.output.write_text(json.dumps({"machine": machine, "results": rows}, indent=2) + "\n")
+    print(f"wrote {args.output}")
+
+
+if __name__ == "__main__":
+    main()
