@@ -159,17 +159,20 @@ def revisit(
 
     Dynamic Gaussians that no longer move are baked at their mean pose and made static.
     Static Gaussians where the field moves, or that `wants_motion` marks (their region keeps
-    an error that changes with time), become dynamic.
+    an error that changes with time), become dynamic, keeping their mean pose.
     """
     c = model.canonical
     everyone = measure_motion(model, times)
     still = is_static(everyone, config, pixel_size)
     demote = model.dynamic & still
     promote = ~model.dynamic & (~still | wants_motion.to(still.device))
-    if bool(demote.any()):
-        rows = demote.nonzero().squeeze(1)
-        for name, delta in everyone.mean_deltas.items():
-            getattr(c, name).index_add_(0, rows, delta[rows])
+    # Either way a Gaussian keeps its mean pose: a demoted one takes its mean deformation
+    # into its canonical parameters, a promoted one gives the field's mean deformation back.
+    for change, sign in ((demote, 1.0), (promote, -1.0)):
+        if bool(change.any()):
+            rows = change.nonzero().squeeze(1)
+            for name, delta in everyone.mean_deltas.items():
+                getattr(c, name).index_add_(0, rows, delta[rows], alpha=sign)
     model.dynamic = (model.dynamic & ~demote) | promote
     return int(demote.sum()), int(promote.sum())
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
+import pytest
 import torch
 
 from dyngs.datamanagers.datamanager import DataConfig, load_scene
@@ -110,7 +111,9 @@ def test_measured_motion_decides_and_baking_keeps_the_mean_pose() -> None:
     mean_offset = offset + velocity * 0.5
     after = model.canonical.means.detach()
     assert torch.allclose(after[1:3], before[1:3] + mean_offset[1:3])
-    assert torch.equal(after[[0, 3]], before[[0, 3]])
+    assert torch.equal(after[0], before[0])
+    # The promoted one gives the scripted mean deformation back: its mean pose is unchanged.
+    assert torch.allclose(after[3], before[3] - mean_offset[3])
 
 
 def test_a_static_gaussian_where_the_field_moves_becomes_dynamic() -> None:
@@ -118,8 +121,14 @@ def test_a_static_gaussian_where_the_field_moves_becomes_dynamic() -> None:
     velocity[1, 2] = 1.0
     model = _ScriptedMotion(velocity, torch.zeros(2, 3))
     model.dynamic[:] = False
-    revisit(model, MotionConfig(), [0.0, 1.0], 0.02, torch.zeros(2, dtype=torch.bool))
+    before = model.canonical.means.detach().clone()
+    times = [0.0, 1.0]
+    revisit(model, MotionConfig(), times, 0.02, torch.zeros(2, dtype=torch.bool))
     assert model.dynamic.tolist() == [False, True]
+    # It moves from now on, about the place where it stood still.
+    drawn = torch.stack([model.at(t, 0).means for t in times])
+    assert torch.allclose(drawn.mean(0), before, atol=1e-6)
+    assert float((drawn[1, 1] - drawn[0, 1]).norm()) == pytest.approx(1.0)
 
 
 def test_model_bytes_count_the_field_only_while_something_moves(tmp_path: Path) -> None:
