@@ -28,6 +28,16 @@ class DatasetError(UserError, ValueError):
     """Bad input data. The message is one line naming the file and the problem."""
 
 
+def capture_folder(path: Path | str, downscale: int) -> Path:
+    """The checks every parser starts with: a positive downscale and an existing folder."""
+    path = Path(path)
+    if downscale < 1:
+        raise ValueError(f"downscale must be a positive integer, got {downscale}")
+    if not path.is_dir():
+        raise DatasetError(f"{path}: not a directory")
+    return path
+
+
 class LazyImages(Sequence[UInt8[Tensor, "H W C"]]):
     """Frames read on demand and kept in a bounded least-recently-used uint8 cache.
 

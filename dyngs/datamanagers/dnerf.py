@@ -25,7 +25,7 @@ import numpy as np
 import torch
 from jaxtyping import Float, UInt8
 
-from dyngs.datamanagers.base import DatasetError, SceneData, Split
+from dyngs.datamanagers.base import DatasetError, SceneData, Split, capture_folder
 from dyngs.datamanagers.cameras import (
     blender_to_world_to_camera,
     check_rigid,
@@ -237,11 +237,7 @@ def parse_dnerf(
     from `fused.ply`, `points3d.ply` or the single *.ply at the top of the folder, else
     `num_random_points` uniform random points in the scene box (seeded by `seed`).
     """
-    path = Path(path)
-    if downscale < 1:
-        raise ValueError(f"downscale must be a positive integer, got {downscale}")
-    if not path.is_dir():
-        raise DatasetError(f"{path}: not a directory")
+    path = capture_folder(path, downscale)
     json_paths = {split: path / f"transforms_{split}.json" for split in SPLITS}
     for split in ("train", "test"):
         if not json_paths[split].is_file():

@@ -51,7 +51,14 @@ import torch
 from jaxtyping import UInt8
 from rich.progress import Progress, TaskID
 
-from dyngs.datamanagers.base import HOST_CACHE_BYTES, DatasetError, LazyImages, SceneData, Split
+from dyngs.datamanagers.base import (
+    HOST_CACHE_BYTES,
+    DatasetError,
+    LazyImages,
+    SceneData,
+    Split,
+    capture_folder,
+)
 from dyngs.datamanagers.cameras import (
     check_rigid,
     llff_to_world_to_camera,
@@ -320,11 +327,7 @@ def parse_dynerf(
     cache_bytes: int = HOST_CACHE_BYTES,
 ) -> SceneData:
     """Read a DyNeRF / N3DV folder; see the module docstring."""
-    path = Path(path)
-    if downscale < 1:
-        raise ValueError(f"downscale must be a positive integer, got {downscale}")
-    if not path.is_dir():
-        raise DatasetError(f"{path}: not a directory")
+    path = capture_folder(path, downscale)
     poses_path = path / POSES
     if not poses_path.is_file():
         raise DatasetError(f"{poses_path}: missing (a DyNeRF folder needs it)")

@@ -58,7 +58,14 @@ import numpy as np
 import torch
 from jaxtyping import UInt8
 
-from dyngs.datamanagers.base import HOST_CACHE_BYTES, DatasetError, LazyImages, SceneData, Split
+from dyngs.datamanagers.base import (
+    HOST_CACHE_BYTES,
+    DatasetError,
+    LazyImages,
+    SceneData,
+    Split,
+    capture_folder,
+)
 from dyngs.datamanagers.cameras import (
     check_rigid,
     points_in_common_view,
@@ -277,11 +284,7 @@ def parse_nerfies(
     cache_bytes: int = HOST_CACHE_BYTES,
 ) -> SceneData:
     """Read a Nerfies / HyperNeRF capture folder; see the module docstring."""
-    path = Path(path)
-    if downscale < 1:
-        raise ValueError(f"downscale must be a positive integer, got {downscale}")
-    if not path.is_dir():
-        raise DatasetError(f"{path}: not a directory")
+    path = capture_folder(path, downscale)
     dataset_path = path / "dataset.json"
     dataset = load_json(dataset_path)
     train_ids = _ids(dataset, "train_ids", str(dataset_path))

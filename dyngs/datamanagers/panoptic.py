@@ -38,7 +38,14 @@ import numpy as np
 import torch
 from jaxtyping import Float, UInt8
 
-from dyngs.datamanagers.base import HOST_CACHE_BYTES, DatasetError, LazyImages, SceneData, Split
+from dyngs.datamanagers.base import (
+    HOST_CACHE_BYTES,
+    DatasetError,
+    LazyImages,
+    SceneData,
+    Split,
+    capture_folder,
+)
 from dyngs.datamanagers.cameras import (
     check_rigid,
     depth_ranges_around_box,
@@ -258,11 +265,7 @@ def parse_panoptic(
     cache_bytes: int = HOST_CACHE_BYTES,
 ) -> SceneData:
     """Read a Dynamic 3D Gaussians (Panoptic) folder; see the module docstring."""
-    path = Path(path)
-    if downscale < 1:
-        raise ValueError(f"downscale must be a positive integer, got {downscale}")
-    if not path.is_dir():
-        raise DatasetError(f"{path}: not a directory")
+    path = capture_folder(path, downscale)
     masks = (path / "seg").is_dir()
     metas: dict[str, _Meta] = {}
     for split, name in META_FILES.items():
