@@ -195,6 +195,10 @@ class DynamicGaussians(nn.Module):
     def any_dynamic(self) -> bool:
         return bool(self.dynamic.any())
 
+    def dynamic_fraction(self) -> float:
+        """Share of the Gaussians that are deformed (0 for an empty model)."""
+        return float(self.dynamic.float().mean()) if len(self.dynamic) else 0.0
+
     def raw_at(self, t: float, deform: bool = True) -> dict[str, Tensor]:
         """Raw (unactivated) parameters at time t, keyed like GAUSSIAN_PARAMS: the canonical
         ones plus the head's deltas (the canonical ones alone when `deform` is False).

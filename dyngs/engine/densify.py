@@ -225,9 +225,7 @@ def plan_refinement(
         if config.reset_opacity_every > 0 and step > config.reset_opacity_every:
             prune |= scale_max > config.prune_world_size * extent
             prune |= state.max_radius > config.prune_screen_size
-        prune |= ~torch.isfinite(torch.cat([p.reshape(n, -1) for p in c.params().values()], 1)).all(
-            1
-        )
+        prune |= ~c.finite_rows()
         grow = (avg >= config.grad_threshold) & ~prune
         # Respect the budget: each clone adds one, each split adds children - 1.
         room = budget_at(config, step, max_iters) - (n - int(prune.sum()))

@@ -158,6 +158,11 @@ class Trainer:
             return self.active_sh + 1
         return None
 
+    def chance_coherence(self) -> float:
+        """Chance alone makes a gradient summed over the views about 1/√views consistent;
+        evidence must clear three times that."""
+        return 3 / math.sqrt(max(len(self.scene.train), 1))
+
     def consider_sh_degree(self, step: int) -> None:
         """At each SH interval, raise the degree if the frozen band's evidence asks for it."""
         g = self.config.gaussians
@@ -167,9 +172,8 @@ class Trainer:
             self.active_sh += 1
             return
         evidence = self.densify_state.sh_coherence()
-        chance = 3 / math.sqrt(max(len(self.scene.train), 1))
         self.writer.scalar("sh/evidence", evidence, self.step)
-        if evidence >= max(g.sh_evidence, chance):
+        if evidence >= max(g.sh_evidence, self.chance_coherence()):
             self.active_sh += 1
             self.console.print(
                 f"[sh] view-dependent error (evidence {evidence:.2f}): SH degree {self.active_sh}",
@@ -317,11 +321,10 @@ class Trainer:
         state = self.densify_state
         # A static Gaussian's region "keeps an error" when its screen gradient is high enough
         # to densify for and its canonical gradient consistently asks for a velocity.
-        # Chance alone gives coherence ~1/√views: ask for three times that at least.
-        chance = 3 / math.sqrt(max(len(self.scene.train), 1))
         mean_gradient = state.grad_sum / state.count.clamp_min(1)
         wants_motion = (mean_gradient >= self.config.densify.grad_threshold) & (
-            state.pull_coherence() >= max(self.config.motion.pull_coherence, chance)
+            state.pull_coherence()
+            >= max(self.config.motion.pull_coherence, self.chance_coherence())
         )
         if final:  # nothing is left to learn: only measured motion decides
             wants_motion[:] = False
@@ -342,10 +345,8 @@ class Trainer:
             )
 
     def dynamic_fraction(self) -> float:
-        dynamic = self.model.dynamic
-        if not self.deforming(self.step):
-            return 0.0
-        return float(dynamic.float().mean()) if len(dynamic) else 0.0
+        """Share of the Gaussians deformed now (none during the static warm-up)."""
+        return self.model.dynamic_fraction() if self.deforming(self.step) else 0.0
 
     # ------------------------------------------------------------ densification
 

@@ -74,7 +74,7 @@ def evaluate_run(
         "run_dir": str(run.run_dir),
         "method": run.config.method,
         "num_gaussians": len(run.model.canonical),
-        "dynamic_fraction": float(run.model.dynamic.float().mean()) if run.deform else 0.0,
+        "dynamic_fraction": run.model.dynamic_fraction() if run.deform else 0.0,
         "model_bytes": model_bytes(run.model, run.sh_degree),
         "train_seconds": run.train_seconds,
         "iterations": run.step,
