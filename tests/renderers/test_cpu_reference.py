@@ -9,6 +9,7 @@ from dataclasses import replace
 import pytest
 import torch
 
+from dyngs.renderers import cpu_reference
 from dyngs.renderers.base import Guards
 from dyngs.renderers.cpu_reference import (
     CpuReferenceConfig,
@@ -27,7 +28,7 @@ SIZES = [(61, 37), (45, 83), (100, 27)]
 
 
 def _max_abs(a: torch.Tensor, b: torch.Tensor, where: torch.Tensor | None = None) -> float:
-    diff = (a.double() - b.double()).abs()
+    diff = (a.detach().double() - b.detach().double()).abs()
     if where is not None:
         diff = diff[where]
     return float(diff.max()) if diff.numel() else 0.0
@@ -253,3 +254,96 @@ def test_devices_and_dtypes(device: str, dtype: torch.dtype) -> None:
     ref = render_oracle(gaussians, camera, background)
     tol = 1e-9 if dtype == torch.float64 else 1e-5
     assert _max_abs(out.rgb.cpu(), ref.rgb, ~ref.fragile) <= tol
+
+
+def _crowded_corner_scene() -> tuple[Gaussians, Camera, torch.Tensor]:
+    """A few hundred Gaussians piled into one corner plus a sparse scatter: tile depth
+    complexities from a handful to hundreds, the shape that made padding expensive."""
+    gen = torch.Generator().manual_seed(11)
+    camera = random_camera(gen, 48, 40, torch.float64)
+    sparse = random_gaussians(gen, 60, torch.float64, sh_degree=1)
+    sparse = replace(sparse, scales=sparse.scales * 0.1)
+    pile = random_gaussians(gen, 300, torch.float64, sh_degree=1, spread=0.15)
+    corner = torch.linalg.solve(camera.world_to_camera[:3, :3], torch.tensor([-0.5, -0.4, 4.0],
+                                dtype=torch.float64) - camera.world_to_camera[:3, 3])  # fmt: skip
+    pile = replace(pile, means=pile.means + corner, scales=pile.scales * 0.3)
+    merged = Gaussians(
+        torch.cat((sparse.means, pile.means)),
+        torch.cat((sparse.quats, pile.quats)),
+        torch.cat((sparse.scales, pile.scales)),
+        torch.cat((sparse.opacities, pile.opacities)),
+        torch.cat((sparse.colors, pile.colors)),
+        1,
+    )
+    return merged, camera, torch.tensor([0.2, 0.3, 0.4], dtype=torch.float64)
+
+
+@pytest.mark.parametrize("fill", [0.0, 0.75, 1.0])
+@pytest.mark.parametrize("chunk_elements", [1, 1 << 12, 1 << 24])
+def test_chunking_changes_neither_image_nor_gradients(
+    fill: float, chunk_elements: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """How tiles are grouped and padded is a speed choice only: one tile per chunk, the
+    default grouping and one chunk for everything give the same image and gradients."""
+    gaussians, camera, background = _crowded_corner_scene()
+
+    def render(fill: float, chunk_elements: int) -> tuple[torch.Tensor, ...]:
+        monkeypatch.setattr(cpu_reference, "_CHUNK_FILL", fill)
+        inputs = [t.clone().requires_grad_(True) for t in (gaussians.means, gaussians.colors)]
+        g = replace(gaussians, means=inputs[0], colors=inputs[1])
+        renderer = CpuReferenceConfig(chunk_elements=chunk_elements).build()
+        out = renderer(g, camera, background)
+        (out.rgb.sum() + out.depth.sum()).backward()
+        assert out.contribution is not None
+        return out.rgb, out.depth, out.contribution, inputs[0].grad, inputs[1].grad  # type: ignore[return-value]
+
+    counts = _tile_counts(gaussians, camera)
+    assert max(counts) > 10 * sorted(counts)[len(counts) // 2]  # the scene is lopsided
+    reference = render(0.0, 1 << 30)  # everything in one chunk, padded to the busiest tile
+    for got, want in zip(render(fill, chunk_elements), reference, strict=True):
+        assert _max_abs(got, want) <= 1e-12
+
+
+def _tile_counts(gaussians: Gaussians, camera: Camera) -> list[int]:
+    screen = project(gaussians, camera, Guards())
+    return cpu_reference._bin(screen, camera.width, camera.height, 8).tile_count.tolist()
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_chunks_cover_every_busy_tile_once_within_budget(seed: int) -> None:
+    gen = torch.Generator().manual_seed(seed)
+    counts = sorted((torch.rand(int(torch.randint(1, 300, (1,), generator=gen)), generator=gen)
+                     ** 6 * 2000).long().tolist(), reverse=True)  # fmt: skip
+    budget = int(torch.randint(1, 5000, (1,), generator=gen))
+    ranges = cpu_reference._chunks(counts, budget)
+    busy = sum(1 for n in counts if n > 0)
+    assert [i for start, stop in ranges for i in range(start, stop)] == list(range(busy))
+    for start, stop in ranges:
+        assert stop - start == 1 or (stop - start) * counts[start] <= budget
+        # No tile is padded to more than 1/_CHUNK_FILL times its own count.
+        assert counts[stop - 1] >= cpu_reference._CHUNK_FILL * counts[start]
+
+
+def test_far_below_threshold_pairs_are_dropped_exactly() -> None:
+    """Pairs whose log-α is far below ln(α_min) (padding, distant pixels) have their
+    exponent raised before exp for speed; a Gaussian just above α_min at a pixel still
+    draws, and one just below draws nothing."""
+    # The Gaussian projects onto the centre of pixel (4, 4), where its α is its opacity.
+    camera = Camera(20.0, 20.0, 4.5, 4.5, torch.eye(4, dtype=torch.float64), 8, 8)
+    background = torch.zeros(3, dtype=torch.float64)
+
+    def peak_alpha(opacity: float) -> float:
+        g = Gaussians(
+            torch.tensor([[0.0, 0.0, 2.0]], dtype=torch.float64),
+            torch.tensor([[1.0, 0.0, 0.0, 0.0]], dtype=torch.float64),
+            torch.full((1, 3), 0.01, dtype=torch.float64),
+            torch.tensor([opacity], dtype=torch.float64),
+            torch.ones(1, 3, dtype=torch.float64),
+            None,
+        )
+        return float(CpuReferenceRenderer()(g, camera, background).alpha.max())
+
+    threshold = Guards().alpha_min
+    assert peak_alpha(0.5) == pytest.approx(0.5, rel=1e-12)
+    assert peak_alpha(threshold * 1.001) == pytest.approx(threshold * 1.001, rel=1e-12)
+    assert peak_alpha(threshold * 0.999) == 0.0
