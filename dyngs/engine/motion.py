@@ -66,6 +66,9 @@ class MotionConfig:
     than this (largest channel, colours in [0, 1]) sees something that moves away; 0.1 ≈
     25/255 sits well above sensor and compression noise (a few /255 in DyNeRF's still
     regions) and below the contrast of a moving object against what is behind it."""
+    crop_field: bool = True
+    """At the end of training, cut the field's planes to the span of the dynamic Gaussians
+    (the only ones that query it): same features where they sit, no storage elsewhere."""
 
     def __post_init__(self) -> None:
         if self.every < 1 or self.samples < 2:

@@ -8,6 +8,7 @@ Letters: N Gaussians before a topology change, M after.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import torch
@@ -116,3 +117,27 @@ def replace_rows(
                 optimizer.state[new] = state
             return
     raise KeyError("parameter is not in the optimizer")
+
+
+def replace_params(
+    optimizer: torch.optim.Optimizer,
+    old: Sequence[nn.Parameter],
+    new: Sequence[nn.Parameter],
+    remap: Callable[[Sequence[Tensor]], list[Tensor]],
+) -> None:
+    """Point `optimizer` at `new` in place of `old`, all in one group, where `remap` turns
+    tensors laid out like `old` into tensors laid out like `new` (a cropped field). Adam's
+    moments go through `remap`; its step count carries over."""
+    holder = next(g for g in optimizer.param_groups if any(p is old[0] for p in g["params"]))
+    holder["params"] = [p for p in holder["params"] if all(p is not q for q in old)] + list(new)
+    states = [optimizer.state.pop(p, {}) for p in old]
+    if not all(states):
+        return  # no step taken yet: nothing to carry
+    moved = {
+        key: remap([s[key] for s in states])
+        for key, value in states[0].items()
+        if isinstance(value, Tensor) and value.shape == old[0].shape
+    }
+    for i, p in enumerate(new):
+        state = {key: value for key, value in states[0].items() if key not in moved}
+        optimizer.state[p] = state | {key: values[i] for key, values in moved.items()}

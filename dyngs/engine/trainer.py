@@ -33,7 +33,7 @@ from dyngs.engine.densify import (
 )
 from dyngs.engine.evaluate import evaluate
 from dyngs.engine.motion import model_bytes, pixel_evidence, revisit, sample_times
-from dyngs.engine.optim import build_optimizer, set_learning_rates
+from dyngs.engine.optim import build_optimizer, replace_params, set_learning_rates
 from dyngs.engine.writer import Writer
 from dyngs.errors import ConfigError, UserError
 from dyngs.fields.base import PlaneGrids
@@ -335,6 +335,27 @@ class Trainer:
         self.writer.scalar("motion/became_dynamic", became_dynamic, self.step)
         self.announce_static_scene(was_dynamic)
 
+    def crop_field(self) -> None:
+        """Cut the field to the span of the Gaussians that query it, once they stop moving
+        (the end of training); Adam's moments are cut alike, so a resumed run goes on."""
+        crop_to = getattr(self.model.field, "crop_to", None)
+        if not self.config.motion.crop_field or crop_to is None or not self.model.any_dynamic():
+            return
+        before = model_bytes(self.model, self.active_sh)
+        old = list(self.model.field.parameters())
+        with torch.no_grad():
+            remap = crop_to(self.model.canonical.means[self.model.dynamic])
+        if remap is None:
+            return
+        replace_params(self.optimizer, old, list(self.model.field.parameters()), remap)
+        after = model_bytes(self.model, self.active_sh)
+        self.console.print(
+            f"[motion] field cut to the span of the dynamic Gaussians: model "
+            f"{before / 2**20:.2f} → {after / 2**20:.2f} MiB",
+            highlight=False,
+            markup=False,
+        )
+
     def announce_static_scene(self, was_dynamic: bool) -> None:
         if was_dynamic and not self.model.any_dynamic():
             self.console.print(
@@ -440,6 +461,7 @@ class Trainer:
                 raise
         if cfg.motion.separate and self.deforming(self.step):
             self.revisit_motion(final=True)
+        self.crop_field()
         self.save()
         return self.evaluate()
 

@@ -11,6 +11,7 @@ its defaults and the deformation road it feeds are 4D Gaussian Splatting (Wu et 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import torch
@@ -104,6 +105,7 @@ class HexPlaneField(nn.Module):
     """
 
     out_dim: int
+    extent: Tensor
 
     def __init__(
         self,
@@ -118,49 +120,50 @@ class HexPlaneField(nn.Module):
         self.out_dim = config.features * len(config.multires)
 
         low, high = config.init_range
-        self.grids = nn.ParameterList()
-        # Per scale, per group: the group's index in `grids`, the name of the buffer holding
-        # its coordinate columns [a0, b0, a1, b1, ...], and whether it holds time planes.
-        self._groups: list[list[tuple[int, str, bool]]] = []
-        # Per scale, per canonical plane: (group index in `grids`, position in the group).
-        self._where: list[list[tuple[int, int]]] = []
+        planes: list[list[Tensor]] = []
         for multiplier in config.multires:
             rx, ry, rz, rt = config.resolution or DEFAULT_RESOLUTION
             res = (rx * multiplier, ry * multiplier, rz * multiplier, rt)
-            # Spatial and time planes never share a group (time planes are sampled as
-            # departures from 1); spatial groups come first, so the spatial product is
-            # formed before it meets the time planes.
-            by_kind_shape: dict[tuple[bool, int, int], list[int]] = {}
+            scale: list[Tensor] = []
             for plane, (a, b) in enumerate(PLANE_AXES):
-                key = (plane >= _SPATIAL_PLANES, res[b], res[a])
-                by_kind_shape.setdefault(key, []).append(plane)
-            where: dict[int, tuple[int, int]] = {}
-            groups: list[tuple[int, str, bool]] = []
-            for (is_time, *shape), members in by_kind_shape.items():
-                data = torch.empty(len(members), config.features, *shape)
-                if is_time:
+                data = torch.empty(config.features, res[b], res[a])
+                if plane >= _SPATIAL_PLANES:
                     data.fill_(1.0)
                 else:
                     data.uniform_(low, high, generator=generator)
-                for slot, plane in enumerate(members):
-                    where[plane] = (len(self.grids), slot)
-                columns = [axis for plane in members for axis in PLANE_AXES[plane]]
-                name = f"columns{len(self.grids)}"
-                self.register_buffer(name, torch.tensor(columns), persistent=False)
-                groups.append((len(self.grids), name, is_time))
-                self.grids.append(nn.Parameter(data))
-            self._groups.append(groups)
-            self._where.append([where[plane] for plane in range(len(PLANE_AXES))])
+                scale.append(data)
+            planes.append(scale)
+        self.grids = nn.ParameterList()
+        self._assemble(planes)
+        # The box-normalised span [lo, hi] of x, y and z that each scale's planes cover:
+        # the whole box until `crop_to` fits them to the Gaussians that use the field.
+        span = torch.tensor([[-1.0] * 3, [1.0] * 3])
+        self.register_buffer("extent", span.repeat(len(config.multires), 1, 1))
+        self._cropped = [False] * len(config.multires)
+
+    def _assemble(self, planes: Sequence[Sequence[Tensor]]) -> None:
+        """Store six [F, R_b, R_a] planes per scale as Parameters, those of one kind and shape
+        stacked into one group that a single `grid_sample` call reads."""
+        grouped, self._groups, self._where, columns = _group(planes)
+        device = grouped[0].device
+        for name in [n for n in self._buffers if n.startswith("columns")]:
+            del self._buffers[name]
+        for groups in self._groups:
+            for index, name, _ in groups:
+                self.register_buffer(name, torch.tensor(columns[index], device=device),
+                                     persistent=False)  # fmt: skip
+        self.grids = nn.ParameterList(nn.Parameter(data) for data in grouped)
 
     def normalize(self, xyz: Float[Tensor, "N 3"], t: Float[Tensor, "N 1"]) -> Float[Tensor, "N 4"]:
         """Grid coordinates (x, y, z, t): box-normalised space and 2t − 1, clamped to [-1, 1]."""
         return space_time(self.box, xyz, t).clamp(-1.0, 1.0)
 
     def forward(self, xyz: Float[Tensor, "N 3"], t: Float[Tensor, "N 1"]) -> Float[Tensor, "N F"]:
-        coords = self.normalize(xyz, t)
-        n = coords.shape[0]
+        full = self.normalize(xyz, t)
+        n = full.shape[0]
         scales: list[Tensor] = []
-        for groups in self._groups:
+        for s, groups in enumerate(self._groups):
+            coords = full if not self._cropped[s] else self._local(full, s)
             product: Tensor | None = None
             for index, name, is_time in groups:
                 param = self.grids[index]
@@ -188,6 +191,101 @@ class HexPlaneField(nn.Module):
         # S × [N, F] (transposed views) -> [N, S·F], one copy.
         return torch.cat(scales, dim=1)
 
+    def _local(self, coords: Float[Tensor, "N 4"], scale: int) -> Float[Tensor, "N 4"]:
+        """Coordinates in scale `scale`'s planes: its [lo, hi] span mapped to [-1, 1]."""
+        lo, hi = self.extent[scale].to(coords.dtype)
+        xyz = ((coords[:, :3] - lo) / (hi - lo) * 2.0 - 1.0).clamp(-1.0, 1.0)
+        return torch.cat((xyz, coords[:, 3:]), dim=1)
+
+    def crop_to(
+        self, xyz: Float[Tensor, "N 3"]
+    ) -> Callable[[Sequence[Tensor]], list[Tensor]] | None:
+        """Keep, at every scale, only the grid nodes that bilinear sampling at `xyz` reads.
+
+        The field then costs storage only where the Gaussians that query it are (the
+        dynamic ones: static Gaussians never query it), and its value at every point inside
+        the kept span is unchanged: the kept nodes are the same nodes, and a cropped plane
+        maps its span's ends onto its edge nodes. Points outside the box were clamped to
+        its faces before, and still are. Time is never cropped.
+
+        Returns the map from tensors laid out like `grids` (Adam's moments) to the cropped
+        layout, or None when nothing could be cut.
+        """
+        if len(xyz) == 0:
+            return None
+        space = self.normalize(xyz, xyz.new_zeros(1, 1))[:, :3]
+        wanted = torch.stack((space.min(0).values, space.max(0).values)).double().cpu()
+        nodes: list[list[tuple[int, int]]] = []
+        for s in range(len(self._groups)):
+            lo, hi = self.extent[s].double().cpu()
+            sizes = self._spatial_sizes(s)
+            position = (wanted - lo) / (hi - lo) * (torch.tensor(sizes).double() - 1)
+            first, last = position[0].floor().long(), position[1].ceil().long()
+            nodes.append([_node_range(int(first[k]), int(last[k]), sizes[k]) for k in range(3)])
+        return self._crop_nodes(nodes)
+
+    def _spatial_sizes(self, scale: int) -> tuple[int, int, int]:
+        """Grid nodes along x, y and z at one scale (read off the xy and xz planes)."""
+        xy, xz = (self.grids[i][slot] for i, slot in self._where[scale][:2])
+        return xy.shape[-1], xy.shape[-2], xz.shape[-2]
+
+    def _crop_nodes(
+        self, nodes: list[list[tuple[int, int]]]
+    ) -> Callable[[Sequence[Tensor]], list[Tensor]] | None:
+        """Keep nodes first..last (inclusive) of each scale's x, y and z axes."""
+        if all(
+            (first, last) == (0, size - 1)
+            for s, ranges in enumerate(nodes)
+            for (first, last), size in zip(ranges, self._spatial_sizes(s), strict=True)
+        ):
+            return None
+        where = self._where
+
+        def cropped_planes(tensors: Sequence[Tensor]) -> list[list[Tensor]]:
+            planes = []
+            for s, scale in enumerate(where):
+                kept = []
+                for plane, (index, slot) in enumerate(scale):
+                    data = tensors[index][slot]
+                    a, b = PLANE_AXES[plane]
+                    if b < 3:
+                        data = data[:, nodes[s][b][0] : nodes[s][b][1] + 1]
+                    data = data[:, :, nodes[s][a][0] : nodes[s][a][1] + 1]
+                    kept.append(data.detach().clone())
+                planes.append(kept)
+            return planes
+
+        def crop(tensors: Sequence[Tensor]) -> list[Tensor]:
+            return _group(cropped_planes(tensors))[0]
+
+        with torch.no_grad():
+            for s, ranges in enumerate(nodes):
+                lo, hi = self.extent[s].double()
+                sizes = torch.tensor(self._spatial_sizes(s), dtype=torch.float64)
+                kept = torch.tensor(ranges, dtype=torch.float64).T  # [2, 3]: first, last
+                step = (hi - lo) / (sizes - 1)
+                self.extent[s] = lo + step * kept
+                self._cropped[s] = bool((self.extent[s].abs() != 1.0).any())
+            self._assemble(cropped_planes(list(self.grids)))
+        return crop
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):  # type: ignore[no-untyped-def]
+        # A checkpoint of a cropped field: crop this (full) one to the same nodes first, so
+        # the shapes match. Checkpoints from before cropping existed have no extent.
+        extent = state_dict.get(prefix + "extent")
+        if extent is not None and not torch.equal(extent.cpu(), self.extent.cpu()):
+            nodes = []
+            for s in range(len(self._groups)):
+                lo, hi = self.extent[s].double().cpu()
+                sizes = torch.tensor(self._spatial_sizes(s)).double()
+                position = (extent[s].double().cpu() - lo) / (hi - lo) * (sizes - 1)
+                index = position.round().long()
+                nodes.append([(int(index[0, k]), int(index[1, k])) for k in range(3)])
+            self._crop_nodes(nodes)
+        elif extent is None:
+            state_dict[prefix + "extent"] = self.extent.clone()
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
     def planes(self) -> PlaneGrids:
         """Views of the planes: spatial [F, R_b, R_a] in order xy, xz, yz and temporal
         [F, T, R] in order xt, yt, zt, scale after scale (coarsest first)."""
@@ -205,3 +303,47 @@ class HexPlaneField(nn.Module):
             f"resolution={c.resolution or DEFAULT_RESOLUTION}, multires={c.multires}, "
             f"features={c.features}, out_dim={self.out_dim}"
         )
+
+
+def _node_range(first: int, last: int, size: int) -> tuple[int, int]:
+    """first..last clipped to the grid, at least two nodes (a cell) wide."""
+    first, last = min(max(first, 0), size - 1), min(max(last, 0), size - 1)
+    if last == first:
+        first, last = (first - 1, last) if last == size - 1 else (first, last + 1)
+    return first, last
+
+
+def _group(
+    planes: Sequence[Sequence[Tensor]],
+) -> tuple[
+    list[Tensor], list[list[tuple[int, str, bool]]], list[list[tuple[int, int]]], list[list[int]]
+]:
+    """Stack each scale's planes of one kind and shape into one tensor.
+
+    Returns the stacked tensors; per scale, the groups as (index into the tensors, name of
+    its coordinate-column buffer, whether it holds time planes); per scale and plane, its
+    (group index, position in the group); and per group, the coordinate columns its
+    planes read, [a0, b0, a1, b1, ...]. Spatial and time planes never share a group
+    (time planes are sampled as departures from 1), and spatial groups come first, so the
+    spatial product is formed before it meets the time planes.
+    """
+    stacked: list[Tensor] = []
+    groups: list[list[tuple[int, str, bool]]] = []
+    where: list[list[tuple[int, int]]] = []
+    columns: list[list[int]] = []
+    for scale in planes:
+        by_kind_shape: dict[tuple[bool, int, int], list[int]] = {}
+        for plane, data in enumerate(scale):
+            key = (plane >= _SPATIAL_PLANES, data.shape[-2], data.shape[-1])
+            by_kind_shape.setdefault(key, []).append(plane)
+        position: dict[int, tuple[int, int]] = {}
+        scale_groups: list[tuple[int, str, bool]] = []
+        for (is_time, *_), members in by_kind_shape.items():
+            for slot, plane in enumerate(members):
+                position[plane] = (len(stacked), slot)
+            scale_groups.append((len(stacked), f"columns{len(stacked)}", is_time))
+            stacked.append(torch.stack([scale[plane] for plane in members]))
+            columns.append([axis for plane in members for axis in PLANE_AXES[plane]])
+        groups.append(scale_groups)
+        where.append([position[plane] for plane in range(len(PLANE_AXES))])
+    return stacked, groups, where, columns

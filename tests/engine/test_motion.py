@@ -208,3 +208,38 @@ def test_the_rig_starts_only_the_moving_objects_dynamic(tmp_path: Path) -> None:
     calls = _field_calls(model)
     model.at(0.5, 0)
     assert calls == [int(dynamic.sum())]
+
+
+def test_the_field_is_cut_to_the_dynamic_gaussians_and_a_run_resumes(tmp_path: Path) -> None:
+    trainer = tiny_trainer(tmp_path, max_iters=40)
+    for step in range(4):
+        trainer.train_step(step)
+    model = trainer.model
+    # Only the Gaussians near the box centre move: the field is needed only there.
+    box = model.box
+    centre = torch.tensor(box.center, dtype=model.canonical.means.dtype)
+    half = 0.5 * torch.tensor(box.size, dtype=centre.dtype)
+    with torch.no_grad():
+        model.dynamic[:] = ((model.canonical.means - centre).abs() < 0.3 * half).all(dim=1)
+    assert 0 < int(model.dynamic.sum()) < len(model.dynamic)
+    with torch.no_grad():
+        before = model.deltas(0.3)[0].means.clone()
+    bytes_before = model_bytes(model, 0)
+
+    trainer.crop_field()
+
+    with torch.no_grad():
+        assert torch.allclose(model.deltas(0.3)[0].means, before, rtol=1e-5, atol=1e-6)
+    assert model_bytes(model, 0) < bytes_before
+    grids = list(model.field.parameters())
+    for p in grids:  # Adam follows the cut planes
+        assert trainer.optimizer.state[p]["exp_avg"].shape == p.shape
+    trainer.train_step(4)
+    trainer.save()
+
+    resumed = Trainer(trainer.config, tmp_path, NullWriter())
+    resumed.load(trainer.checkpoint_path())
+    assert [p.shape for p in resumed.model.field.parameters()] == [p.shape for p in grids]
+    with torch.no_grad():
+        assert torch.equal(resumed.model.deltas(0.3)[0].means, model.deltas(0.3)[0].means)
+    resumed.train_step(5)

@@ -362,13 +362,13 @@ def test_gradcheck_through_the_spatial_planes() -> None:
     assert torch.autograd.gradcheck(sample, (spatial.detach().clone().requires_grad_(),))
 
 
-def test_state_dict_round_trip_holds_only_the_planes() -> None:
+def test_state_dict_round_trip_holds_only_the_planes_and_their_extent() -> None:
     g = torch.Generator().manual_seed(14)
     config = HexPlaneConfig(resolution=(4, 5, 6, 3), multires=(1, 2), features=3)
     field = config.build(BOX, generator=g)
     _perturb_time_planes(field, g)
     state = field.state_dict()
-    assert all(key.startswith("grids.") for key in state)
+    assert all(key.startswith("grids.") or key == "extent" for key in state)
     other = config.build(BOX)
     other.load_state_dict(state)
     xyz = _points(20, BOX, g, torch.float32)
