@@ -102,6 +102,10 @@ class HexPlaneField(nn.Module):
     `planes()` returns views of those Parameters, so regularizer gradients reach them.
     Time planes are sampled as 1 + interp(plane − 1), which makes a plane of exactly 1
     give exactly 1 (see `forward`).
+
+    Cropping: `crop_to` cuts each scale's spatial planes down to the nodes that the points
+    which query the field need; `extent` (saved with the planes) records the box-normalised
+    span each scale then covers, and points are mapped from it onto the cut planes.
     """
 
     out_dim: int
