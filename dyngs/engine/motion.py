@@ -157,18 +157,22 @@ def revisit(
     times: list[float],
     pixel_size: float,
     wants_motion: Tensor,
+    pixels_move: Tensor | None = None,
 ) -> tuple[int, int]:
     """Revisit the split in place; returns (newly static, newly dynamic) counts.
 
-    Dynamic Gaussians that no longer move are baked at their mean pose and made static.
-    Static Gaussians where the field moves, or that `wants_motion` marks (their region keeps
-    an error that changes with time), become dynamic, keeping their mean pose.
+    Dynamic Gaussians that no longer move are baked at their mean pose and made static,
+    unless `pixels_move` marks them (fixed cameras see their pixels change). Static
+    Gaussians where the field moves, that `wants_motion` marks (their region keeps an error
+    that changes with time) or that `pixels_move` marks become dynamic, keeping their mean
+    pose.
     """
     c = model.canonical
     everyone = measure_motion(model, times)
     still = is_static(everyone, config, pixel_size)
-    demote = model.dynamic & still
-    promote = ~model.dynamic & (~still | wants_motion.to(still.device))
+    pixels = torch.zeros_like(still) if pixels_move is None else pixels_move.to(still.device)
+    demote = model.dynamic & still & ~pixels
+    promote = ~model.dynamic & (~still | wants_motion.to(still.device) | pixels)
     # Either way a Gaussian keeps its mean pose: a demoted one takes its mean deformation
     # into its canonical parameters, a promoted one gives the field's mean deformation back.
     for change, sign in ((demote, 1.0), (promote, -1.0)):
