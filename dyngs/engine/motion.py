@@ -35,6 +35,7 @@ from dyngs.datamanagers.base import Split
 from dyngs.errors import ConfigError
 from dyngs.geometry import normalize_quaternion
 from dyngs.model import DynamicGaussians
+from dyngs.types import Camera
 
 CHUNK = 65_536
 """Gaussians deformed at once when measuring motion (bounds the field's activations)."""
@@ -232,37 +233,49 @@ def pixel_motion_maps(
     return maps
 
 
-@torch.no_grad()
-def pixel_evidence(
-    means: Float[Tensor, "N 3"], split: Split, config: MotionConfig, early: float = 0.0
-) -> Bool[Tensor, " N"] | None:
-    """Which Gaussians most fixed cameras that see them see move away (see
-    `pixel_motion_maps`); None without fixed cameras."""
-    groups = fixed_camera_groups(split)
-    if not groups:
-        return None
-    votes = torch.zeros(len(means), device=means.device)
-    seen = torch.zeros(len(means), device=means.device)
-    for views, motion_map in zip(groups, pixel_motion_maps(split, groups, early), strict=True):
-        camera = split.cameras[views[0]]
-        w2c = camera.world_to_camera.to(means.device, means.dtype)
-        p = means @ w2c[:3, :3].T + w2c[:3, 3]
-        z = p[:, 2]
-        front = z > camera.near
-        zs = torch.where(front, z, 1.0)
-        u = (camera.fx * p[:, 0] / zs + camera.cx).floor()
-        v = (camera.fy * p[:, 1] / zs + camera.cy).floor()
-        inside = front & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
-        # Dilate by one pixel: a point on a moving edge may sit just beside the change.
-        dilated = torch.nn.functional.max_pool2d(motion_map[None, None], 3, 1, 1)[0, 0]
-        dilated = dilated.to(means.device)
-        ui = u.clamp(0, camera.width - 1).long()
-        vi = v.clamp(0, camera.height - 1).long()
-        moving = dilated[vi, ui] > config.pixel_change
-        votes += (inside & moving).to(votes.dtype)
-        seen += inside.to(seen.dtype)
-    # A Gaussian no fixed camera sees has no evidence either way: it stays dynamic.
-    return (votes > 0.5 * seen) | (seen == 0)
+@dataclass
+class FixedCameraMotion:
+    """What a capture's fixed cameras see move: per fixed camera, its camera and its
+    `pixel_motion_maps` map, dilated by one pixel (a point on a moving edge may sit just
+    beside the change). It depends on the images only, so a run computes it once and asks
+    it of the Gaussians at every revisit."""
+
+    cameras: list[Camera]
+    maps: list[Float[Tensor, "H W"]]
+
+    @classmethod
+    def of(cls, split: Split, early: float = 0.0) -> FixedCameraMotion | None:
+        """None when the split has no fixed cameras."""
+        groups = fixed_camera_groups(split)
+        if not groups:
+            return None
+        maps = [
+            torch.nn.functional.max_pool2d(motion_map[None, None], 3, 1, 1)[0, 0]
+            for motion_map in pixel_motion_maps(split, groups, early)
+        ]
+        return cls([split.cameras[views[0]] for views in groups], maps)
+
+    @torch.no_grad()
+    def evidence(self, means: Float[Tensor, "N 3"], config: MotionConfig) -> Bool[Tensor, " N"]:
+        """Which Gaussians most of the fixed cameras that see them see move away."""
+        votes = torch.zeros(len(means), device=means.device)
+        seen = torch.zeros(len(means), device=means.device)
+        for camera, motion_map in zip(self.cameras, self.maps, strict=True):
+            w2c = camera.world_to_camera.to(means.device, means.dtype)
+            p = means @ w2c[:3, :3].T + w2c[:3, 3]
+            z = p[:, 2]
+            front = z > camera.near
+            zs = torch.where(front, z, 1.0)
+            u = (camera.fx * p[:, 0] / zs + camera.cx).floor()
+            v = (camera.fy * p[:, 1] / zs + camera.cy).floor()
+            inside = front & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
+            ui = u.clamp(0, camera.width - 1).long()
+            vi = v.clamp(0, camera.height - 1).long()
+            moving = motion_map.to(means.device)[vi, ui] > config.pixel_change
+            votes += (inside & moving).to(votes.dtype)
+            seen += inside.to(seen.dtype)
+        # A Gaussian no fixed camera sees has no evidence either way: it stays dynamic.
+        return (votes > 0.5 * seen) | (seen == 0)
 
 
 def model_bytes(model: DynamicGaussians, sh_degree: int) -> int:

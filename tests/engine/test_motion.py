@@ -12,11 +12,11 @@ from dyngs.datamanagers.datamanager import DataConfig, load_scene
 from dyngs.datamanagers.procedural import ProceduralSceneConfig, demo_path, is_on_dynamic_object
 from dyngs.engine.densify import DensifyConfig, apply_topology, plan_refinement
 from dyngs.engine.motion import (
+    FixedCameraMotion,
     MotionConfig,
     fixed_camera_groups,
     measure_motion,
     model_bytes,
-    pixel_evidence,
     revisit,
     sample_times,
 )
@@ -40,9 +40,10 @@ def test_fixed_cameras_see_which_points_move() -> None:
     moving = _on_moving_object(scene.points, RIG)
     assert 100 < int(moving.sum()) < len(moving) // 2  # both kinds are well represented
 
-    evidence = pixel_evidence(scene.points, scene.train, MotionConfig())
+    fixed = FixedCameraMotion.of(scene.train)
+    assert fixed is not None
+    evidence = fixed.evidence(scene.points, MotionConfig())
 
-    assert evidence is not None
     assert float(evidence[moving].float().mean()) >= 0.98  # the ball and the cube
     assert float(evidence[~moving].float().mean()) <= 0.05  # the pedestal and the pillar
 
@@ -50,14 +51,14 @@ def test_fixed_cameras_see_which_points_move() -> None:
 def test_fixed_cameras_on_a_still_scene_see_nothing_move() -> None:
     still = dataclasses.replace(RIG, motion=False)
     scene = load_scene(str(demo_path(still)), DataConfig(), seed=0)
-    evidence = pixel_evidence(scene.points, scene.train, MotionConfig())
-    assert evidence is not None and not bool(evidence.any())
+    fixed = FixedCameraMotion.of(scene.train)
+    assert fixed is not None and not bool(fixed.evidence(scene.points, MotionConfig()).any())
 
 
 def test_moving_cameras_give_no_pixel_evidence() -> None:
     scene = load_scene(str(demo_path(TINY_SCENE)), DataConfig(), seed=0)
     assert fixed_camera_groups(scene.train) == []
-    assert pixel_evidence(scene.points, scene.train, MotionConfig()) is None
+    assert FixedCameraMotion.of(scene.train) is None
 
 
 def test_sample_times_spread_over_the_distinct_times() -> None:
