@@ -143,6 +143,8 @@ class HexPlaneField(nn.Module):
         # the whole box until `crop_to` fits them to the Gaussians that use the field.
         span = torch.tensor([[-1.0] * 3, [1.0] * 3])
         self.register_buffer("extent", span.repeat(len(config.multires), 1, 1))
+        # Whether each scale is cut, kept beside `extent` so that `forward` never reads a
+        # device tensor to decide (a sync per call on a GPU).
         self._cropped = [False] * len(config.multires)
 
     def _assemble(self, planes: Sequence[Sequence[Tensor]]) -> None:
@@ -218,15 +220,21 @@ class HexPlaneField(nn.Module):
         if len(xyz) == 0:
             return None
         space = self.normalize(xyz, xyz.new_zeros(1, 1))[:, :3]
-        wanted = torch.stack((space.min(0).values, space.max(0).values)).double().cpu()
+        wanted = torch.stack((space.min(0).values, space.max(0).values))
         nodes: list[list[tuple[int, int]]] = []
         for s in range(len(self._groups)):
-            lo, hi = self.extent[s].double().cpu()
-            sizes = self._spatial_sizes(s)
-            position = (wanted - lo) / (hi - lo) * (torch.tensor(sizes).double() - 1)
+            position = self._node_positions(s, wanted)
             first, last = position[0].floor().long(), position[1].ceil().long()
+            sizes = self._spatial_sizes(s)
             nodes.append([_node_range(int(first[k]), int(last[k]), sizes[k]) for k in range(3)])
         return self._crop_nodes(nodes)
+
+    def _node_positions(self, scale: int, span: Float[Tensor, "2 3"]) -> Float[Tensor, "2 3"]:
+        """Where a box-normalised [lo, hi] span falls on one scale's x, y and z grid nodes
+        (node i at position i), in float64."""
+        lo, hi = self.extent[scale].double().cpu()
+        sizes = torch.tensor(self._spatial_sizes(scale), dtype=torch.float64)
+        return (span.double().cpu() - lo) / (hi - lo) * (sizes - 1)
 
     def _spatial_sizes(self, scale: int) -> tuple[int, int, int]:
         """Grid nodes along x, y and z at one scale (read off the xy and xz planes)."""
@@ -280,10 +288,7 @@ class HexPlaneField(nn.Module):
         if extent is not None and not torch.equal(extent.cpu(), self.extent.cpu()):
             nodes = []
             for s in range(len(self._groups)):
-                lo, hi = self.extent[s].double().cpu()
-                sizes = torch.tensor(self._spatial_sizes(s)).double()
-                position = (extent[s].double().cpu() - lo) / (hi - lo) * (sizes - 1)
-                index = position.round().long()
+                index = self._node_positions(s, extent[s]).round().long()
                 nodes.append([(int(index[0, k]), int(index[1, k])) for k in range(3)])
             self._crop_nodes(nodes)
         elif extent is None:
