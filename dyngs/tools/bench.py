@@ -107,20 +107,20 @@ SWEEPS: dict[str, Sweep] = {
     ),
     "adaptive": Sweep(
         points=(
-            {},
             {
                 "motion.separate": "false",
                 "densify.max-gaussians": "3000000",
                 "densify.prune-importance": "0",
                 "gaussians.sh-evidence": "0",
             },
+            {},
         )
     ),
 }
 """Built-in sweeps (`--sweep NAME`). `tradeoffs` changes one thing at a time from the
 preset (with --train-args applied to every point); `adaptive` compares the preset with
-everything dynamic, no Gaussian budget and the SH schedule of 3DGS; the others sweep one
-axis."""
+everything dynamic, no Gaussian budget and the SH schedule of 3DGS (first, so that --seeds
+gives the preset's change from it); the others sweep one axis."""
 
 
 @dataclass(frozen=True)
@@ -147,6 +147,11 @@ class BenchConfig:
     """Untimed renders before the timed ones in each evaluation."""
     save_images: bool = False
     """Save each point's evaluation images (render | ground truth)."""
+    seeds: tuple[int, ...] = ()
+    """Train every point once per seed (a `seed` axis). The results then add each point's
+    mean and spread over the seeds, and its difference from the first point paired by
+    seed (seeds.csv, results.json). One run cannot resolve a fraction of a dB: a seed
+    alone moves a scene's PSNR by more than that."""
 
 
 @dataclass(frozen=True)
@@ -248,6 +253,12 @@ def resolve_sweep(config: BenchConfig) -> Sweep:
     for axis in config.grid:
         key, values = parse_grid_axis(axis)
         grid[key] = values
+    if config.seeds:
+        if "seed" in grid or any("seed" in point for point in sweep.points):
+            raise ConfigError("--seeds: the sweep already sets `seed`; give the seeds once")
+        if len(set(config.seeds)) != len(config.seeds):
+            raise ConfigError(f"--seeds {' '.join(map(str, config.seeds))}: a seed repeats")
+        grid["seed"] = tuple(str(seed) for seed in config.seeds)
     return dataclasses.replace(
         sweep,
         grid=grid,
@@ -571,6 +582,110 @@ def results_table(rows: list[dict[str, Any]], front: set[int], title: str) -> Ta
     return table
 
 
+SEED_QUALITY = ("psnr", "ssim", "lpips")
+"""Compared with the first point as a difference, seed by seed."""
+SEED_COST = ("render_ms_median", "deformation_ms", "num_gaussians", "model_bytes", "train_seconds")
+"""Compared with the first point as a relative change, seed by seed."""
+SEED_OTHER = ("dynamic_fraction",)
+
+
+def _spread(values: Sequence[float]) -> dict[str, float | None]:
+    """Mean, sample standard deviation (None for one value), min and max."""
+    mean = sum(values) / len(values)
+    std = (
+        math.sqrt(sum((v - mean) ** 2 for v in values) / (len(values) - 1))
+        if len(values) > 1
+        else None
+    )
+    return {"mean": mean, "std": std, "min": min(values), "max": max(values)}
+
+
+def summarize_seeds(
+    rows: Sequence[dict[str, Any]], points: Sequence[BenchPoint]
+) -> list[dict[str, Any]]:
+    """One entry per point of the sweep without its seed: each metric's spread over the
+    seeds, and its change from the first such point, paired by seed (a difference for
+    PSNR, SSIM and LPIPS; a relative change, 0.1 = 10 % more, for the costs). Pairing
+    removes what a seed does to both points alike (its initial cloud, its view order)."""
+    groups: dict[str, dict[str, dict[str, Any]]] = {}
+    for row, point in zip(rows, points, strict=True):
+        rest = {k: v for k, v in point.params.items() if k != "seed"}
+        label = ", ".join(f"{k}={v}" for k, v in rest.items()) or "preset"
+        groups.setdefault(label, {})[point.params["seed"]] = row
+    reference_label, reference = next(iter(groups.items()))
+    summary: list[dict[str, Any]] = []
+    for label, by_seed in groups.items():
+        entry: dict[str, Any] = {"point": label, "seeds": [int(s) for s in by_seed]}
+        for key in (*SEED_QUALITY, *SEED_COST, *SEED_OTHER):
+            values = [r[key] for r in by_seed.values() if r.get(key) is not None]
+            entry[key] = _spread(values) if values else None
+        if label != reference_label:
+            entry["versus"] = reference_label
+            for key in (*SEED_QUALITY, *SEED_COST):
+                pairs = [
+                    (row[key], reference[seed][key])
+                    for seed, row in by_seed.items()
+                    if seed in reference
+                    and row.get(key) is not None
+                    and reference[seed].get(key) is not None
+                ]
+                if key in SEED_QUALITY:
+                    changes = [a - b for a, b in pairs]
+                else:
+                    changes = [a / b - 1 for a, b in pairs if b]
+                entry[f"change:{key}"] = _spread(changes) if changes else None
+        summary.append(entry)
+    return summary
+
+
+def _flatten(entry: dict[str, Any]) -> dict[str, Any]:
+    flat: dict[str, Any] = {"point": entry["point"], "seeds": " ".join(map(str, entry["seeds"]))}
+    for key, value in entry.items():
+        if isinstance(value, dict):
+            flat |= {f"{key}:{stat}": v for stat, v in value.items()}
+        elif key not in flat:
+            flat[key] = value
+    return flat
+
+
+def _plus_minus(spread: dict[str, float | None] | None, digits: int, signed: bool = False) -> str:
+    """`mean ± std` (just the mean for one seed)."""
+    if spread is None:
+        return "null"
+    mean, std = spread["mean"], spread["std"]
+    text = f"{mean:{'+' if signed else ''}.{digits}f}"
+    return text if std is None else f"{text} ± {std:.{digits}f}"
+
+
+def _percent(spread: dict[str, float | None] | None) -> str:
+    return "" if spread is None or spread["mean"] is None else f"{100 * spread['mean']:+.0f} %"
+
+
+def seeds_table(summary: Sequence[dict[str, Any]], title: str) -> Table:
+    table = Table(title=title)
+    for header in ("point", "seeds", "PSNR dB", "Δ PSNR", "Δ PSNR min..max", "SSIM",
+                   "render ms", "Δ render", "model MiB", "Δ size", "dynamic"):  # fmt: skip
+        table.add_column(header, justify="left" if header == "point" else "right",
+                         max_width=36 if header == "point" else None, overflow="fold")  # fmt: skip
+    for entry in summary:
+        psnr_change = entry.get("change:psnr")
+        size = entry["model_bytes"]
+        table.add_row(
+            entry["point"],
+            str(len(entry["seeds"])),
+            _plus_minus(entry["psnr"], 2),
+            _plus_minus(psnr_change, 2, signed=True) if psnr_change else "",
+            f"{psnr_change['min']:+.2f}..{psnr_change['max']:+.2f}" if psnr_change else "",
+            _plus_minus(entry["ssim"], 3),
+            _plus_minus(entry["render_ms_median"], 1),
+            _percent(entry.get("change:render_ms_median")),
+            f"{size['mean'] / 2**20:.2f}" if size else "null",
+            _percent(entry.get("change:model_bytes")),
+            _plus_minus(entry["dynamic_fraction"], 2),
+        )
+    return table
+
+
 def run_bench(config: BenchConfig, console: Console | None = None) -> list[dict[str, Any]]:
     """Run the sweep (skipping finished points) and write every result file; returns rows."""
     console = console or Console()
@@ -587,7 +702,12 @@ def run_bench(config: BenchConfig, console: Console | None = None) -> list[dict[
     rows = [collect(p, config, swept) | {"status": statuses[p.name]} for p in points]
     out = config.output_dir
     write_csv(rows, out / "results.csv")
-    write_json(out / "results.json", {"data": config.data, "split": config.split, "rows": rows})
+    results: dict[str, Any] = {"data": config.data, "split": config.split, "rows": rows}
+    summary = summarize_seeds(rows, points) if config.seeds else []
+    if summary:
+        results["seeds"] = summary
+        write_csv([_flatten(entry) for entry in summary], out / "seeds.csv")
+    write_json(out / "results.json", results)
     dataset = "demo" if config.data == "demo" else Path(config.data).resolve().name
     device = rows[0]["device"] if rows else "?"
     title = f"{dataset}: {config.split} split, {device}"
@@ -601,6 +721,11 @@ def run_bench(config: BenchConfig, console: Console | None = None) -> list[dict[
         )
     }
     console.print(results_table(rows, front, f"{title} (bold: Pareto front in render time)"))
+    if summary:
+        heading = f"{title}: mean ± std over seeds {' '.join(map(str, config.seeds))}"
+        console.print(
+            seeds_table(summary, f"{heading}; Δ: against {summary[0]['point']}, paired by seed")
+        )
     console.print(f"wrote {out / 'results.csv'}, results.json, results.png and tensorboard/")
     return rows
 

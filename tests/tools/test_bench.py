@@ -111,3 +111,42 @@ def test_sweep_files(tmp_path: Path) -> None:
 def test_builtin_sweeps_are_valid_train_flags(name: str, tmp_path: Path) -> None:
     points = plan_points(BenchConfig(output_dir=tmp_path), resolve_sweep(BenchConfig(sweep=name)))
     assert len(points) >= 2 and len({p.name for p in points}) == len(points)
+
+
+def test_seeds_give_each_point_a_spread_and_a_paired_change(
+    tmp_path: Path, tiny_data: Path
+) -> None:
+    out = tmp_path / "bench"
+    _bench(out, tiny_data, "--seeds", "0", "1")
+    results = json.loads((out / "results.json").read_text())
+    rows = {(r["param:max-iters"], r["param:seed"]): r for r in results["rows"]}
+    assert sorted(rows) == [("2", "0"), ("2", "1"), ("3", "0"), ("3", "1")]
+    assert rows["2", "0"]["psnr"] != rows["2", "1"]["psnr"]  # the seed reaches training
+    first, second = results["seeds"]
+    assert (first["point"], second["point"]) == ("max-iters=2", "max-iters=3")
+    assert first["seeds"] == second["seeds"] == [0, 1]
+    psnr = [rows["3", s]["psnr"] for s in "01"]
+    assert second["psnr"]["mean"] == pytest.approx(sum(psnr) / 2)
+    assert second["psnr"]["std"] == pytest.approx(abs(psnr[0] - psnr[1]) / 2**0.5)
+    assert (second["psnr"]["min"], second["psnr"]["max"]) == (min(psnr), max(psnr))
+    assert "versus" not in first and second["versus"] == "max-iters=2"
+    differences = [rows["3", s]["psnr"] - rows["2", s]["psnr"] for s in "01"]
+    assert second["change:psnr"]["mean"] == pytest.approx(sum(differences) / 2)
+    ratios = [rows["3", s]["model_bytes"] / rows["2", s]["model_bytes"] - 1 for s in "01"]
+    assert second["change:model_bytes"]["mean"] == pytest.approx(sum(ratios) / 2)
+    with (out / "seeds.csv").open() as f:
+        table = list(csv.DictReader(f))
+    assert [r["point"] for r in table] == ["max-iters=2", "max-iters=3"]
+    assert float(table[1]["change:psnr:mean"]) == pytest.approx(second["change:psnr"]["mean"])
+
+
+def test_seeds_are_given_once(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="a seed repeats"):
+        resolve_sweep(BenchConfig(seeds=(0, 0)))
+    with pytest.raises(ConfigError, match="already sets `seed`"):
+        resolve_sweep(BenchConfig(grid=("seed=1,2",), seeds=(0,)))
+    sweep = resolve_sweep(BenchConfig(sweep="adaptive", seeds=(0, 1)))
+    points = plan_points(BenchConfig(output_dir=tmp_path), sweep)
+    assert [p.params.get("seed") for p in points] == ["0", "1", "0", "1"]
+    assert [p.config.seed for p in points] == [0, 1, 0, 1]
+    assert not points[0].config.motion.separate and points[2].config.motion.separate
