@@ -9,6 +9,7 @@ from dataclasses import replace
 import pytest
 import torch
 
+from dyngs.errors import ConfigError
 from dyngs.renderers import cpu_reference
 from dyngs.renderers.base import Guards
 from dyngs.renderers.cpu_reference import (
@@ -35,8 +36,8 @@ def _max_abs(a: torch.Tensor, b: torch.Tensor, where: torch.Tensor | None = None
 
 
 @pytest.mark.parametrize("seed", range(6))
-@pytest.mark.parametrize("tile_size", [16, 8])
-def test_float64_matches_oracle(seed: int, tile_size: int) -> None:
+@pytest.mark.parametrize("tile_size", [16, 8, 4, None])
+def test_float64_matches_oracle(seed: int, tile_size: int | None) -> None:
     width, height = SIZES[seed % len(SIZES)]
     sh_degree = [None, 0, 1, 2, 3, 3][seed]
     antialiased = seed % 2 == 1
@@ -347,3 +348,49 @@ def test_far_below_threshold_pairs_are_dropped_exactly() -> None:
     assert peak_alpha(0.5) == pytest.approx(0.5, rel=1e-12)
     assert peak_alpha(threshold * 1.001) == pytest.approx(threshold * 1.001, rel=1e-12)
     assert peak_alpha(threshold * 0.999) == 0.0
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_tile_pair_counts_are_what_binning_makes(seed: int) -> None:
+    width, height = SIZES[seed % len(SIZES)]
+    gaussians, camera, _ = random_scene(seed, 300, width, height, torch.float64)
+    screen = project(gaussians, camera, Guards())
+    sizes = (4, 5, 8, 16)
+    binned = [int(cpu_reference._bin(screen, width, height, s).tile_count.sum()) for s in sizes]
+    assert cpu_reference.tile_pair_counts(screen, width, height, sizes) == binned
+    assert binned[0] > binned[-1] > 0
+
+
+@pytest.mark.parametrize(("scale", "expected"), [(0.01, 4), (1.0, 16)])
+def test_small_gaussians_get_small_tiles_and_large_ones_large_tiles(
+    scale: float, expected: int
+) -> None:
+    """σ of 0.5 px wastes most of an 8×8 tile's pixels; σ of 50 px covers the whole
+    128² image, where 16×16 tiles make a quarter of the pairs that 8×8 tiles do."""
+    gen = torch.Generator().manual_seed(0)
+    n = 200
+    means = torch.cat((torch.rand(n, 2, generator=gen, dtype=torch.float64) * 2 - 1,
+                       torch.full((n, 1), 2.0, dtype=torch.float64)), dim=1)  # fmt: skip
+    quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]], dtype=torch.float64).expand(n, 4)
+    gaussians = Gaussians(means, quats, torch.full((n, 3), scale, dtype=torch.float64),
+                          torch.full((n,), 0.5, dtype=torch.float64),
+                          torch.rand(n, 3, generator=gen, dtype=torch.float64), None)  # fmt: skip
+    camera = Camera(100.0, 100.0, 64.0, 64.0, torch.eye(4, dtype=torch.float64), 128, 128)
+    screen = project(gaussians, camera, Guards())
+    assert cpu_reference.choose_tile_size(screen, 128, 128) == expected
+    # The choice is the least expected work over the binnings it chooses from.
+    work = {
+        size: int(cpu_reference._bin(screen, 128, 128, size).tile_count.sum())
+        * (cpu_reference._PAIR_COST + size * size)
+        for size in cpu_reference._TILE_SIZES
+    }
+    assert min(work, key=work.__getitem__) == expected
+    background = torch.zeros(3, dtype=torch.float64)
+    auto = CpuReferenceRenderer()(gaussians, camera, background)
+    fixed = CpuReferenceConfig(tile_size=8).build()(gaussians, camera, background)
+    assert _max_abs(auto.rgb, fixed.rgb) <= 1e-12
+
+
+def test_tile_size_must_be_positive() -> None:
+    with pytest.raises(ConfigError, match="tile-size must be ≥ 1"):
+        CpuReferenceConfig(tile_size=0)
