@@ -24,6 +24,23 @@ from pathlib import Path
 import torch
 
 
+def with_tile_size(run: Path, tile_size: str, scratch: Path) -> Path:
+    """A copy of the run folder (its checkpoint linked) whose cpu-reference renderer uses
+    `tile_size` ("auto": the renderer's per-frame choice): runs trained before a renderer
+    change record the tile size they were trained with, and the image does not depend
+    on it."""
+    copy = scratch / f"{run.name}-tile-{tile_size}"
+    if not copy.is_dir():
+        copy.mkdir(parents=True)
+        config = json.loads((run / "config.json").read_text())
+        if not config["renderer"]["__class__"].endswith(":CpuReferenceConfig"):
+            raise SystemExit(f"{run}: --tile-size applies to the cpu-reference renderer only")
+        config["renderer"]["tile_size"] = None if tile_size == "auto" else int(tile_size)
+        (copy / "config.json").write_text(json.dumps(config))
+        (copy / "checkpoint.pt").symlink_to((run / "checkpoint.pt").resolve())
+    return copy
+
+
 def evaluate_once(run: Path, split: str, output: Path) -> dict[str, float]:
     command = [
         sys.executable, "-m", "dyngs.tools.eval", "--load-dir", str(run), "--split", split,
@@ -40,6 +57,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--split", default="test")
     parser.add_argument("--output", type=Path, default=Path("benchmarks/results/rerender.json"))
+    parser.add_argument("--tile-size", help="re-time with this cpu-reference tile size, or auto")
     args = parser.parse_args()
 
     samples: dict[Path, list[dict[str, float]]] = {run: [] for run in args.runs}
@@ -47,13 +65,19 @@ def main() -> None:
         for repeat in range(args.repeats):
             for i, run in enumerate(args.runs):
                 out = Path(scratch) / f"{i}_{repeat}.json"
-                samples[run].append(evaluate_once(run, args.split, out))
+                folder = (
+                    run
+                    if args.tile_size is None
+                    else with_tile_size(run, args.tile_size, Path(scratch))
+                )
+                samples[run].append(evaluate_once(folder, args.split, out))
                 print(f"repeat {repeat + 1}/{args.repeats}  {run}  {samples[run][-1]}", flush=True)
 
     rows = []
     for run, values in samples.items():
         row = {
             "run": str(run),
+            "tile_size": args.tile_size or "as trained",
             "repeats": len(values),
             "render_ms_median": statistics.median(v["render_ms_median"] for v in values),
             "render_ms_spread": [min(v["render_ms_median"] for v in values),
