@@ -72,7 +72,7 @@ def depth_complexity(gaussians: Gaussians, camera: Camera, samples: int = 4096) 
 
 
 def run_single(
-    n: int, size: int, sigma_px: float, tile_size: int, repeats: int, backward: bool
+    n: int, size: int, sigma_px: float, tile_size: int | None, repeats: int, backward: bool
 ) -> dict:
     gaussians, camera = make_scene(n, size, sigma_px)
     renderer = CpuReferenceConfig(tile_size=tile_size).build()
@@ -103,7 +103,7 @@ def run_single(
         "gaussians": n,
         "size": size,
         "sigma_px": sigma_px,
-        "tile_size": tile_size,
+        "tile_size": tile_size or "auto",
         "backward": backward,
         "repeats": repeats,
         "forward_s": statistics.median(times_fwd[1:]),
@@ -120,7 +120,9 @@ def main() -> None:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--sigma-px", type=float, nargs="+", default=[1.5])
-    parser.add_argument("--tile-size", type=int, nargs="+", default=[16])
+    parser.add_argument(
+        "--tile-size", nargs="+", default=["auto"], help="tile sizes, or auto (per frame)"
+    )
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--output", type=Path, default=Path("benchmarks/results/renderer.json"))
     parser.add_argument("--single", nargs=5, help=argparse.SUPPRESS)
@@ -131,7 +133,12 @@ def main() -> None:
         print(
             json.dumps(
                 run_single(
-                    int(n), int(size), float(sigma), int(tile), args.repeats, backward == "1"
+                    int(n),
+                    int(size),
+                    float(sigma),
+                    None if tile == "auto" else int(tile),
+                    args.repeats,
+                    backward == "1",
                 )
             )
         )
