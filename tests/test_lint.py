@@ -23,6 +23,6 @@ def test_ruff() -> None:
 def test_mypy() -> None:
     pytest.importorskip("mypy", reason="mypy is not installed (pip install -e .[dev])")
     result = subprocess.run(
-        [sys.executable, "-m", "mypy", "dyngs"], cwd=ROOT, capture_output=True, text=True
+        [sys.executable, "-m", "mypy", "dyngs", "tests"], cwd=ROOT, capture_output=True, text=True
     )
     assert result.returncode == 0, result.stdout + result.stderr

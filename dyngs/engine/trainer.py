@@ -44,7 +44,8 @@ from dyngs.losses.temporal import time_l1_to_static, time_smoothness
 from dyngs.losses.tv import plane_tv
 from dyngs.metrics import psnr
 from dyngs.model import CanonicalGaussians, DynamicGaussians
-from dyngs.renderers.base import RenderOutput
+from dyngs.renderers import renderer_name
+from dyngs.renderers.base import Renderer, RenderOutput
 
 CHECKPOINT_NAME = "checkpoint.pt"
 
@@ -122,7 +123,7 @@ class Trainer:
         self.generator = torch.Generator().manual_seed(config.seed)
 
         # The renderer first: a machine that cannot run it should say so before any loading.
-        self.renderer = config.renderer.build()
+        self.renderer: Renderer = config.renderer.build()
         self.scene = scene or load_scene(config.data, config.dataset, seed=config.seed)
         self.config = config = resolve_capacity(config, self.scene)
         self.data = DataManager(self.scene, config.dataset, self.device, self.generator)
@@ -525,9 +526,7 @@ class Trainer:
             "train_seconds": self.train_seconds,
             "iterations": self.step,
             "skipped_steps": self.skipped_steps,
-            "renderer": "cuda-tile"
-            if type(self.renderer).__name__.startswith("Cuda")
-            else "cpu-reference",
+            "renderer": renderer_name(self.config.renderer),
             "device": str(self.device),
         }
         for key in ("psnr", "ssim", "lpips"):

@@ -20,6 +20,11 @@ RendererConfig = Union[  # noqa: UP007 (tyro reads the tags from this form)
 ]
 
 
+def renderer_name(config: CpuReferenceConfig | CudaTileConfig) -> str:
+    """The renderer's CLI name (`renderer:NAME`)."""
+    return "cuda-tile" if isinstance(config, CudaTileConfig) else "cpu-reference"
+
+
 def default_renderer() -> CpuReferenceConfig | CudaTileConfig:
     """cuda-tile where a CUDA device and gsplat are present, else cpu-reference."""
     return CudaTileConfig() if cuda_tile_available() else CpuReferenceConfig()
@@ -33,4 +38,5 @@ __all__ = [
     "RendererConfig",
     "RendererUnavailable",
     "default_renderer",
+    "renderer_name",
 ]

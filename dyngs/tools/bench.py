@@ -60,7 +60,8 @@ from dyngs.engine.trainer import CHECKPOINT_NAME
 from dyngs.errors import ConfigError, UserError
 from dyngs.fields.hexplane import DEFAULT_RESOLUTION, HexPlaneConfig
 from dyngs.fields.mlp import MLPFieldConfig
-from dyngs.tools.common import renderer_name, run_tool
+from dyngs.renderers import renderer_name
+from dyngs.tools.common import run_tool
 from dyngs.tools.eval import write_json
 
 SUBCOMMAND_KEYS = ("field", "renderer")

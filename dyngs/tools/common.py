@@ -26,7 +26,7 @@ from dyngs.engine.trainer import CHECKPOINT_NAME, Trainer
 from dyngs.engine.writer import NullWriter
 from dyngs.errors import ConfigError, UserError
 from dyngs.model import DynamicGaussians
-from dyngs.renderers import CpuReferenceConfig, CudaTileConfig, RendererConfig
+from dyngs.renderers import CpuReferenceConfig, CudaTileConfig, renderer_name
 from dyngs.renderers.base import Renderer
 
 RendererChoice = Literal["run", "cpu-reference", "cuda-tile"]
@@ -68,10 +68,6 @@ class RunOverrides:
     """Renderer to draw with: `run` (the one trained with), `cpu-reference` or `cuda-tile`."""
     data: str | None = None
     """Dataset folder, when it has moved since training (default: the run's `--data`)."""
-
-
-def renderer_name(config: RendererConfig) -> str:
-    return "cuda-tile" if isinstance(config, CudaTileConfig) else "cpu-reference"
 
 
 @dataclass(frozen=True)

@@ -22,7 +22,8 @@ from dyngs.engine.checkpoint import atomic_write_text
 from dyngs.engine.evaluate import evaluate
 from dyngs.engine.motion import model_bytes
 from dyngs.errors import ConfigError
-from dyngs.tools.common import LoadedRun, RunOverrides, load_run, renderer_name, run_tool
+from dyngs.renderers import renderer_name
+from dyngs.tools.common import LoadedRun, RunOverrides, load_run, run_tool
 
 Split = Literal["test", "val", "train"]
 

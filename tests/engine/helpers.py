@@ -6,6 +6,8 @@ import dataclasses
 from pathlib import Path
 from typing import Any
 
+from torch import nn
+
 from dyngs.config import TrainConfig
 from dyngs.datamanagers.datamanager import DataConfig
 from dyngs.datamanagers.procedural import ProceduralSceneConfig, demo_path
@@ -33,3 +35,17 @@ def tiny_config(**overrides: Any) -> TrainConfig:
 
 def tiny_trainer(tmp_path: Path, **overrides: Any) -> Trainer:
     return Trainer(tiny_config(**overrides), tmp_path, NullWriter())
+
+
+def output_layer(branch: nn.Module) -> nn.Linear:
+    """The last Linear of a deformation head's branch: its bias is a constant delta."""
+    assert isinstance(branch, nn.Sequential) and isinstance(branch[-1], nn.Linear)
+    return branch[-1]
+
+
+def field_calls(field: object) -> list[int]:
+    """How many points each later call of `field` is given (a forward hook appends them)."""
+    assert isinstance(field, nn.Module)
+    calls: list[int] = []
+    field.register_forward_hook(lambda module, args, out: calls.append(args[0].shape[0]))
+    return calls

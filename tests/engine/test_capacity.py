@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
+from typing import Any
 
 from dyngs.capacity import (
     BUDGET_LIMITS,
@@ -14,6 +15,7 @@ from dyngs.capacity import (
     resolve_capacity,
 )
 from dyngs.config import TrainConfig
+from dyngs.datamanagers.base import SceneData
 from dyngs.datamanagers.datamanager import DataConfig, load_scene
 from dyngs.datamanagers.procedural import demo_path
 from dyngs.engine.densify import DensifyConfig, DensifyState, plan_refinement
@@ -23,7 +25,7 @@ from dyngs.fields.hexplane import HexPlaneConfig
 from tests.engine.helpers import TINY_SCENE, tiny_config, tiny_trainer
 
 
-def _scene(**changes: int):  # type: ignore[no-untyped-def]
+def _scene(**changes: Any) -> SceneData:
     return load_scene(str(demo_path(dataclasses.replace(TINY_SCENE, **changes))), DataConfig())
 
 

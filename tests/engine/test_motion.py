@@ -24,7 +24,7 @@ from dyngs.engine.trainer import Trainer
 from dyngs.engine.writer import NullWriter
 from dyngs.fields.heads import Deltas
 from dyngs.model import CanonicalGaussians, DynamicGaussians, GaussianConfig
-from tests.engine.helpers import TINY_SCENE, tiny_config, tiny_trainer
+from tests.engine.helpers import TINY_SCENE, field_calls, tiny_config, tiny_trainer
 
 # A rig of six cameras that never move, watching the ball and the cube move.
 RIG = ProceduralSceneConfig(resolution=64, num_times=12, fixed_cameras=6, num_test=3, num_val=0)
@@ -167,12 +167,6 @@ def test_flags_follow_densification_and_survive_resume(tmp_path: Path) -> None:
     resumed.train_step(3)
 
 
-def _field_calls(model: DynamicGaussians) -> list[int]:
-    calls: list[int] = []
-    model.field.register_forward_hook(lambda m, args, out: calls.append(args[0].shape[0]))
-    return calls
-
-
 def test_a_still_scene_trains_as_a_static_scene(tmp_path: Path) -> None:
     still = dataclasses.replace(TINY_SCENE, motion=False)
     config = tiny_config(
@@ -188,7 +182,7 @@ def test_a_still_scene_trains_as_a_static_scene(tmp_path: Path) -> None:
     static = ~trainer.model.dynamic
     assert float(static.float().mean()) >= 0.95
     assert metrics["dynamic_fraction"] <= 0.05
-    calls = _field_calls(trainer.model)
+    calls = field_calls(trainer.model.field)
     trainer.model.at(0.5, 0)
     assert metrics["static_scene"] is (not trainer.model.any_dynamic())
     assert calls == ([] if metrics["static_scene"] else [int(trainer.model.dynamic.sum())])
@@ -213,7 +207,7 @@ def test_the_rig_splits_the_moving_objects_from_the_still_background(tmp_path: P
     assert float(dynamic[moving].float().mean()) >= 0.98
     assert float(dynamic[~moving].float().mean()) <= 0.1
     # Only the dynamic ones query the field.
-    calls = _field_calls(model)
+    calls = field_calls(model.field)
     model.at(0.5, 0)
     assert calls == [int(dynamic.sum())]
 

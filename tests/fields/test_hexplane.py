@@ -316,6 +316,7 @@ def _interior_points(field: HexPlaneField, n: int, generator: torch.Generator) -
     """Points at least 0.05 texel away from every cell boundary of every scale and axis, so
     that the bilinear interpolation is smooth around them and gradcheck's differences hold."""
     box, config = field.box, field.config
+    assert config.resolution is not None  # a built field has its resolution resolved
     chosen: list[list[float]] = []
     while len(chosen) < n:
         unit = torch.rand(3, generator=generator, dtype=torch.float64) * 1.8 - 0.9

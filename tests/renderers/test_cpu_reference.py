@@ -221,8 +221,11 @@ def test_two_overlapping_gaussians_composite_in_depth_order() -> None:
     expected_alpha = 0.6 + 0.4 * 0.5
     expected_depth = (0.6 * 2.0 + 0.4 * 0.5 * 3.0) / expected_alpha
     for first, second in ((near, far), (far, near)):  # input order must not matter
-        g = Gaussians(*(torch.cat((getattr(first, k), getattr(second, k))) for k in
-                        ("means", "quats", "scales", "opacities", "colors")))  # fmt: skip
+        means, quats, scales, opacities, colors = (
+            torch.cat((getattr(first, k), getattr(second, k)))
+            for k in ("means", "quats", "scales", "opacities", "colors")
+        )
+        g = Gaussians(means, quats, scales, opacities, colors)
         out = CpuReferenceRenderer()(g, camera, background)
         assert torch.allclose(out.rgb[2, 2], expected_rgb, atol=1e-12)
         assert abs(float(out.alpha[2, 2, 0]) - expected_alpha) < 1e-12

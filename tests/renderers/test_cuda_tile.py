@@ -97,7 +97,10 @@ def test_gradients_match_the_reference(seed: int) -> None:
             t.clone().requires_grad_(True)
             for t in (g.means, g.quats, g.scales, g.opacities, g.colors)
         ]
-        out = config.build()(Gaussians(*leaves, sh_degree=1), camera, background)
+        means, quats, scales, opacities, colors = leaves
+        out = config.build()(
+            Gaussians(means, quats, scales, opacities, colors, 1), camera, background
+        )
         (out.rgb * weights).sum().backward()
         grads.append([t.grad for t in leaves])
     for name, fast, slow in zip(

@@ -201,8 +201,8 @@ def test_sh_basis_is_orthonormal() -> None:
 
 def test_sh_colours() -> None:
     # Degree 0: colour = c·Y_00 + 0.5, clamped below at 0 only.
-    coeffs = [[[0.3, -0.2, -2.0]]]
-    g = make_gaussians([0, 0, 2.0], [0.02] * 3, [0.5], coeffs, sh_degree=0)
+    dc = [[[0.3, -0.2, -2.0]]]
+    g = make_gaussians([0, 0, 2.0], [0.02] * 3, [0.5], dc, sh_degree=0)
     out = render_oracle(g, make_camera(), torch.zeros(3, dtype=F64))
     expected = [0.3 * C0 + 0.5, -0.2 * C0 + 0.5, 0.0]
     assert (2 * out.rgb[CENTRE, CENTRE]).tolist() == pytest.approx(expected, rel=1e-14)

@@ -7,13 +7,14 @@ import itertools
 import json
 from pathlib import Path
 from types import SimpleNamespace
-from typing import Any
+from typing import Any, cast
 
 import pytest
 import torch
 
 from dyngs.engine import evaluate as evaluate_module
 from dyngs.metrics import LPIPS
+from dyngs.renderers import Renderer
 from dyngs.tools.common import load_run
 from dyngs.tools.eval import main
 from tests.conftest import WEIGHTS
@@ -88,7 +89,15 @@ def test_perfect_render_and_small_images_stay_valid_json(
     monkeypatch.setattr(LPIPS, "MIN_SIZE", 10_000)
     with pytest.warns(UserWarning, match="LPIPS needs images"):
         metrics = evaluate_module.evaluate(
-            run.model, perfect, run.data, "test", 0, True, None, run.device, warmup=0
+            run.model,
+            cast(Renderer, perfect),
+            run.data,
+            "test",
+            0,
+            True,
+            None,
+            run.device,
+            warmup=0,
         )
     assert metrics["psnr"] is None and metrics["lpips"] is None
     assert all(f["psnr"] is None and f["ssim"] == pytest.approx(1.0) for f in metrics["frames"])

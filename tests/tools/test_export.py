@@ -12,7 +12,7 @@ from dyngs.model import GAUSSIAN_PARAMS, activate
 from dyngs.ply import read_ply
 from dyngs.tools.common import load_run
 from dyngs.tools.export import export_raw, main, read_gaussians_ply, write_gaussians_ply
-from tests.engine.helpers import TINY_SCENE
+from tests.engine.helpers import TINY_SCENE, output_layer
 
 
 def _random_raw(n: int, rest: int, seed: int = 0) -> dict[str, torch.Tensor]:
@@ -61,7 +61,7 @@ def test_raw_at_is_what_at_draws(tiny_run: Path) -> None:
     with torch.no_grad():
         for branch in (model.head.means, model.head.quats, model.head.scales):
             if branch is not None:
-                branch[-1].bias.uniform_(-0.1, 0.1)  # a visible deformation
+                output_layer(branch).bias.uniform_(-0.1, 0.1)  # a visible deformation
     raw = model.raw_at(0.4)
     assert not torch.equal(raw["means"], model.canonical.means)
     sh = torch.cat((raw["sh_dc"], raw["sh_rest"]), 1)
