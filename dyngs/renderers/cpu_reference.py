@@ -245,8 +245,9 @@ class _Bins:
 
 # Compositing costs about (pixel, Gaussian) pairs plus this many times the (tile, Gaussian)
 # pairs: each pair is binned, sorted and gathered, and its exponent's coefficients are
-# built once for all its tile's pixels. Least squares over 222 frames of seven trained
-# models (3 tile sizes each) gave 12.1; any value from 8 to 16 chose equally well.
+# built once for all its tile's pixels. Least squares over 74 frames of seven trained
+# models, each drawn at all three sizes, gave 11.3 (benchmarks/calibrate_tiles.py); any
+# value from 8 to 16 chose about equally well.
 _PAIR_COST = 12
 _TILE_SIZES = (4, 8, 16)
 
