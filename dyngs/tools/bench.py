@@ -42,6 +42,7 @@ import math
 import re
 import shlex
 import shutil
+import statistics
 import subprocess
 import sys
 from collections.abc import Sequence
@@ -286,6 +287,11 @@ def point_tokens(params: dict[str, str]) -> tuple[str | None, list[str], list[st
     return method, subcommands, flags
 
 
+def _label(params: dict[str, str]) -> str:
+    """A point's own flags as `key=value, …` (`preset` when it has none)."""
+    return ", ".join(f"{k}={v}" for k, v in params.items()) or "preset"
+
+
 def _slug(params: dict[str, str]) -> str:
     text = "_".join(f"{k}-{v}" for k, v in params.items()) or "preset"
     return re.sub(r"[^A-Za-z0-9.=-]+", "-", text.replace(" ", "-"))[:80].strip("-")
@@ -318,7 +324,7 @@ def plan_points(config: BenchConfig, sweep: Sweep) -> list[BenchPoint]:
     points_dir = config.output_dir / "points"
     planned: list[BenchPoint] = []
     for params in sweep.expand():
-        label = ", ".join(f"{k}={v}" for k, v in params.items()) or "preset"
+        label = _label(params)
         preset, subcommands, flags = point_tokens(params)
         method = preset or sweep.method or "hexplane-4dgs"
         args = [method, *subcommands, *shlex.split(sweep.train_args), *flags]
@@ -592,13 +598,8 @@ SEED_OTHER = ("dynamic_fraction",)
 
 def _spread(values: Sequence[float]) -> dict[str, float | None]:
     """Mean, sample standard deviation (None for one value), min and max."""
-    mean = sum(values) / len(values)
-    std = (
-        math.sqrt(sum((v - mean) ** 2 for v in values) / (len(values) - 1))
-        if len(values) > 1
-        else None
-    )
-    return {"mean": mean, "std": std, "min": min(values), "max": max(values)}
+    std = statistics.stdev(values) if len(values) > 1 else None
+    return {"mean": statistics.mean(values), "std": std, "min": min(values), "max": max(values)}
 
 
 def summarize_seeds(
@@ -610,8 +611,7 @@ def summarize_seeds(
     removes what a seed does to both points alike (its initial cloud, its view order)."""
     groups: dict[str, dict[str, dict[str, Any]]] = {}
     for row, point in zip(rows, points, strict=True):
-        rest = {k: v for k, v in point.params.items() if k != "seed"}
-        label = ", ".join(f"{k}={v}" for k, v in rest.items()) or "preset"
+        label = _label({k: v for k, v in point.params.items() if k != "seed"})
         groups.setdefault(label, {})[point.params["seed"]] = row
     reference_label, reference = next(iter(groups.items()))
     summary: list[dict[str, Any]] = []
