@@ -6,8 +6,9 @@ Every other test view of every run is projected once and rasterised (forward, no
 gradient, one thread) at tile sizes 4, 8 and 16, the best of `--repeats` timings kept.
 A least-squares fit of time ≈ c + a · tile pairs + b · tile pairs · pixels per tile gives
 a/b, the `_PAIR_COST` of dyngs/renderers/cpu_reference.py. The script then sums, over
-all frames, the time of each fixed size, of the per-frame choice with `_PAIR_COST`, and of
-the best size in hindsight. Prints the figures and writes them to --output (JSON).
+all frames, the time of each fixed size, of the renderer's own per-frame choice
+(`choose_tile_size`), and of the best size in hindsight. Prints the figures and writes
+them to --output (JSON).
 """
 
 from __future__ import annotations
@@ -37,7 +38,8 @@ def measure(run_dir: Path, repeats: int) -> list[dict[str, float]]:
             gaussians = run.model.at(view.time, run.sh_degree, deform=run.deform)
             screen = cpu_reference.project(gaussians, camera, run.renderer.guards)
             pairs = cpu_reference.tile_pair_counts(screen, camera.width, camera.height, SIZES)
-            frame: dict[str, float] = {}
+            chosen = cpu_reference.choose_tile_size(screen, camera.width, camera.height)
+            frame: dict[str, float] = {"chosen": chosen}
             for size, count in zip(SIZES, pairs, strict=True):
                 best = float("inf")
                 for _ in range(repeats):
@@ -73,13 +75,9 @@ def main() -> None:
     times = [f[f"ms_{s}"] for f in frames for s in SIZES]
     (const, per_pair, per_pixel), *_ = np.linalg.lstsq(np.array(rows), np.array(times), rcond=None)
 
-    def chosen(frame: dict[str, float], pair_cost: float) -> float:
-        size = min(SIZES, key=lambda s: frame[f"pairs_{s}"] * (pair_cost + s * s))
-        return frame[f"ms_{size}"]
-
     totals = {f"fixed {s}": sum(f[f"ms_{s}"] for f in frames) for s in SIZES}
     totals[f"chosen (pair cost {cpu_reference._PAIR_COST})"] = sum(
-        chosen(f, cpu_reference._PAIR_COST) for f in frames
+        f[f"ms_{int(f['chosen'])}"] for f in frames
     )
     totals["best in hindsight"] = sum(min(f[f"ms_{s}"] for s in SIZES) for f in frames)
     result = {
