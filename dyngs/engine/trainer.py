@@ -183,6 +183,21 @@ class Trainer:
                 markup=False,
             )
 
+    def window_full_step(self) -> float:
+        """First step at which the time window spans the whole sequence."""
+        cfg = self.config
+        return cfg.warmup_iters + max(cfg.time_ramp, 0.0) * cfg.max_iters
+
+    def learning_progress(self, step: int) -> tuple[float, float | None]:
+        """How far the rates have decayed: the run's progress, and the deformation's (from
+        the step the time window is full) when `--optim.hold-deformation-rates`."""
+        cfg = self.config
+        progress = step / max(cfg.max_iters, 1)
+        if not cfg.optim.hold_deformation_rates:
+            return progress, None
+        full = self.window_full_step()
+        return progress, (step - full) / max(cfg.max_iters - full, 1)
+
     def time_window(self, step: int) -> float:
         """Latest time trained on at `step`: `warmup_time` through the warm-up, then widening
         linearly to 1 over `time_ramp` of the run."""
@@ -204,7 +219,7 @@ class Trainer:
     def _train_step(self, step: int) -> StepStats:
         """One iteration: a view, a render, the losses, a gradient step, densification."""
         cfg = self.config
-        set_learning_rates(self.optimizer, step / max(cfg.max_iters, 1))
+        set_learning_rates(self.optimizer, *self.learning_progress(step))
         batch = self.data.next_train(max_time=self.time_window(step))
         deform = self.deforming(step) and self.model.any_dynamic()
 

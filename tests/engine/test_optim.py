@@ -7,7 +7,7 @@ import pytest
 import torch
 from torch import nn
 
-from dyngs.engine.optim import replace_rows, set_learning_rates
+from dyngs.engine.optim import OptimConfig, replace_rows, set_learning_rates
 from tests.engine.helpers import tiny_trainer
 
 
@@ -40,6 +40,39 @@ def test_groups_and_exponential_decay(tmp_path: Path) -> None:
     set_learning_rates(trainer.optimizer, 1.0)
     assert means["lr"] == pytest.approx(end)
     assert groups["quats"]["lr"] == pytest.approx(1e-3)  # constant groups stay put
+
+
+def test_deformation_rates_hold_until_the_time_window_is_full(tmp_path: Path) -> None:
+    # 100 steps: a warm-up of 10, then the window widens over 40 and is full at step 50.
+    held = OptimConfig(hold_deformation_rates=True)
+    trainer = tiny_trainer(tmp_path, max_iters=100, warmup_iters=10, time_ramp=0.4, optim=held)
+    groups = {g["name"]: g for g in trainer.optimizer.param_groups}
+    means, grid, network = groups["means"], groups["grid"], groups["network"]
+    assert trainer.window_full_step() == 50
+    assert trainer.time_window(49) < 1.0 and trainer.time_window(50) == 1.0
+
+    def rates_at(step: int) -> tuple[float, float, float]:
+        set_learning_rates(trainer.optimizer, *trainer.learning_progress(step))
+        return means["lr"], grid["lr"], network["lr"]
+
+    for step in (0, 30, 50):  # the Gaussians decay from step 0, the deformation holds
+        m, g, n = rates_at(step)
+        assert m == pytest.approx(
+            means["lr_start"] * (means["lr_end"] / means["lr_start"]) ** (step / 100)
+        )
+        assert (g, n) == pytest.approx((grid["lr_start"], network["lr_start"]), rel=1e-12)
+    _, g, n = rates_at(75)  # halfway through the rest of the run
+    assert g == pytest.approx(math.sqrt(grid["lr_start"] * grid["lr_end"]))
+    assert n == pytest.approx(math.sqrt(network["lr_start"] * network["lr_end"]))
+    assert rates_at(100)[1:] == pytest.approx((grid["lr_end"], network["lr_end"]))
+
+    # By default every group decays over the whole run (the schedule of 4DGaussians).
+    plain = tiny_trainer(tmp_path / "plain", max_iters=100, warmup_iters=10, time_ramp=0.4)
+    set_learning_rates(plain.optimizer, *plain.learning_progress(30))
+    plain_grid = next(g for g in plain.optimizer.param_groups if g["name"] == "grid")
+    assert plain_grid["lr"] == pytest.approx(
+        plain_grid["lr_start"] * (plain_grid["lr_end"] / plain_grid["lr_start"]) ** 0.3
+    )
 
 
 def test_replace_rows_moves_and_zeroes_moments() -> None:
