@@ -186,7 +186,7 @@ class Trainer:
     def window_full_step(self) -> float:
         """First step at which the time window spans the whole sequence."""
         cfg = self.config
-        return cfg.warmup_iters + max(cfg.time_ramp, 0.0) * cfg.max_iters
+        return cfg.warmup_iters + cfg.time_ramp * cfg.max_iters
 
     def learning_progress(self, step: int) -> tuple[float, float | None]:
         """How far the rates have decayed: the run's progress, and the deformation's (from
