@@ -81,6 +81,15 @@ class TrainConfig:
     """Fraction of the run over which the training views' time window then widens from
     `warmup_time` to the whole sequence (0: all times at once). Motion is learned forward in
     time, following objects, instead of bridging large displacements in one go."""
+    frontier_share: float = 0.5
+    """While the window widens, this share of the steps trains on a view from its newest
+    `frontier-span` of time, the rest on any view in it. Drawing from the whole window
+    alone, a new time gets a share of the steps that shrinks as the window grows; on the
+    built-in scene the deformation then fell behind the motion after t ≈ 0.6 and never
+    caught up (docs/CAPACITY.md). 0 turns it off."""
+    frontier_span: float = 0.1
+    """Width in t of the newest part of the window that `frontier-share` draws from (the
+    latest views when none is that recent)."""
     seed: int = 0
     """Seeds every random choice (initialisation, view order, densification)."""
     device: str = "auto"
@@ -121,6 +130,10 @@ class TrainConfig:
             raise ConfigError(f"--warmup-time must be in [0, 1], got {self.warmup_time}")
         if not 0.0 <= self.time_ramp <= 1.0:
             raise ConfigError(f"--time-ramp must be in [0, 1], got {self.time_ramp}")
+        if not 0.0 <= self.frontier_share <= 1.0:
+            raise ConfigError(f"--frontier-share must be in [0, 1], got {self.frontier_share}")
+        if not 0.0 < self.frontier_span <= 1.0:
+            raise ConfigError(f"--frontier-span must be in (0, 1], got {self.frontier_span}")
         if self.max_bad_steps < 1:
             raise ConfigError(f"--max-bad-steps must be ≥ 1, got {self.max_bad_steps}")
         if self.eval_split not in ("train", "val", "test"):

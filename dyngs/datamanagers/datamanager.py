@@ -5,6 +5,7 @@ Letters: H×W image.
 
 from __future__ import annotations
 
+from bisect import bisect_left, bisect_right
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
@@ -257,6 +258,10 @@ class DataManager:
         self._epoch = 0
         self._position = 0
         self._order = self._permutation(0)
+        train_times = self._splits["train"].times
+        self._by_time = sorted(range(len(train_times)), key=train_times.__getitem__)
+        self._sorted_times = [train_times[i] for i in self._by_time]
+        self._frontier_draws = 0
 
     @property
     def num_train(self) -> int:
@@ -293,6 +298,22 @@ class DataManager:
             served.read_ahead(self._order[self._position])
         return batch
 
+    def next_frontier(self, max_time: float, span: float) -> TrainBatch:
+        """A training view from the newest `span` of the time window: drawn at random from
+        those with max_time − span ≤ t ≤ max_time (the latest views before max_time when
+        none is that recent). Draw k uses a generator seeded with (s + 2⁶² + k), so the
+        draws never repeat the epochs' permutations and resume exactly from a counter.
+        """
+        served = self._splits["train"]
+        times = self._sorted_times
+        end = bisect_right(times, max(max_time, self._earliest))  # views with t ≤ max_time
+        low = min(max_time - span, times[end - 1])
+        start = bisect_left(times, low, hi=end)
+        generator = torch.Generator().manual_seed(self._seed + 2**62 + self._frontier_draws)
+        self._frontier_draws += 1
+        pick = start + int(torch.randint(end - start, (1,), generator=generator))
+        return served.batch(self._by_time[pick])
+
     def views(self, split: str) -> Iterator[TrainBatch]:
         """Every view of "train", "val" or "test", in order."""
         if split not in self._splits:
@@ -315,6 +336,7 @@ class DataManager:
             "epoch": self._epoch,
             "position": self._position,
             "num_train": self.num_train,
+            "frontier_draws": self._frontier_draws,
         }
 
     def load_state_dict(self, state: dict[str, int]) -> None:
@@ -329,3 +351,4 @@ class DataManager:
         self._epoch = int(state["epoch"])
         self._position = position
         self._order = self._permutation(self._epoch)
+        self._frontier_draws = int(state.get("frontier_draws", 0))  # absent before it existed

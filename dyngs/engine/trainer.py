@@ -209,6 +209,16 @@ class Trainer:
             return 1.0
         return min(1.0, cfg.warmup_time + (1 - cfg.warmup_time) * (step - cfg.warmup_iters) / ramp)
 
+    def is_frontier_step(self, step: int) -> bool:
+        """Whether this step trains on the newest part of a widening window: `frontier_share`
+        of the steps, spread evenly (step s is one when ⌊(s + 1)·share⌋ > ⌊s·share⌋)."""
+        share = self.config.frontier_share
+        return (
+            self.deforming(step)
+            and self.time_window(step) < 1.0
+            and math.floor((step + 1) * share) > math.floor(step * share)
+        )
+
     def deforming(self, step: int) -> bool:
         return step >= self.config.warmup_iters
 
@@ -220,7 +230,11 @@ class Trainer:
         """One iteration: a view, a render, the losses, a gradient step, densification."""
         cfg = self.config
         set_learning_rates(self.optimizer, *self.learning_progress(step))
-        batch = self.data.next_train(max_time=self.time_window(step))
+        window = self.time_window(step)
+        if self.is_frontier_step(step):
+            batch = self.data.next_frontier(window, cfg.frontier_span)
+        else:
+            batch = self.data.next_train(max_time=window)
         deform = self.deforming(step) and self.model.any_dynamic()
 
         started = time.perf_counter()

@@ -79,6 +79,46 @@ def test_state_dict_resumes_the_same_sequence() -> None:
         ).load_state_dict(state)
 
 
+def _frontier(manager: DataManager, max_time: float, span: float, count: int) -> list[int]:
+    return [manager.next_frontier(max_time, span).index for _ in range(count)]
+
+
+# Train times are k/6, k = 0..6: (window, span, the views a frontier draw may give).
+FRONTIER_CASES = [
+    (0.6, 0.3, {2, 3}),  # 1/3 and 1/2 lie in [0.3, 0.6]
+    (0.9, 0.5, {3, 4, 5}),
+    (1.0, 0.1, {6}),
+    (0.6, 0.05, {3}),  # none in [0.55, 0.6]: the latest view before 0.6
+    (0.01, 0.2, {0}),  # the window holds the first view alone
+    (-1.0, 0.2, {0}),  # before the first view: the earliest stands in, as in next_train
+]
+
+
+@pytest.mark.parametrize(("window", "span", "expected"), FRONTIER_CASES)
+def test_frontier_draws_come_from_the_newest_span_of_the_window(
+    window: float, span: float, expected: set[int]
+) -> None:
+    assert set(_frontier(_manager(0), window, span, 60)) == expected
+
+
+def test_frontier_draws_are_reproducible_resumable_and_leave_the_epochs_alone() -> None:
+    plain, mixed = _manager(3), _manager(3)
+    drawn = []
+    for _ in range(12):  # interleaving frontier draws does not change the epochs' order
+        drawn += _frontier(mixed, 1.0, 0.9, 2)
+        assert plain.next_train().index == mixed.next_train().index
+    assert _frontier(_manager(3), 1.0, 0.9, 24) == drawn  # the same from the same seed
+    assert len(set(drawn)) > 3  # and random among the six candidates
+    state = mixed.state_dict()
+    expected = _frontier(mixed, 1.0, 0.9, 10)
+    resumed = _manager(42)
+    resumed.load_state_dict(state)
+    assert _frontier(resumed, 1.0, 0.9, 10) == expected
+    del state["frontier_draws"]  # a checkpoint from before frontier draws existed
+    resumed.load_state_dict(state)
+    assert _frontier(resumed, 1.0, 0.9, 24) == drawn
+
+
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("cache_bytes", [2 << 30, 0])
 def test_batches_are_float_images_whether_cached_or_not(cache_bytes: int, device: str) -> None:

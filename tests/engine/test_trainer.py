@@ -5,7 +5,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from dyngs.datamanagers.datamanager import DataConfig
+from dyngs.datamanagers.datamanager import DataConfig, TrainBatch
 from dyngs.engine.trainer import Trainer
 from dyngs.engine.writer import NullWriter
 from dyngs.metrics import psnr
@@ -52,6 +52,49 @@ def test_static_gaussians_never_query_the_field(tmp_path: Path) -> None:
     still = model.canonical.means
     assert torch.equal(moved[~model.dynamic], still[~model.dynamic])
     assert not torch.allclose(moved[model.dynamic], still[model.dynamic])
+
+
+@pytest.mark.parametrize("share", [0.0, 0.5, 0.3, 1.0])
+def test_frontier_steps_train_on_the_newest_times_of_the_ramp(
+    tmp_path: Path, share: float, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # 40 steps: a warm-up of 2, then the window widens over 20 and is full from step 22.
+    trainer = tiny_trainer(
+        tmp_path, max_iters=40, warmup_iters=2, time_ramp=0.5, frontier_share=share
+    )
+    frontier = [s for s in range(40) if trainer.is_frontier_step(s)]
+    assert all(2 <= s < 22 for s in frontier)
+    assert len(frontier) == round(20 * share)  # spread evenly over the ramp's 20 steps
+    if share != 0.5:
+        return
+    assert frontier == list(range(3, 22, 2))
+    # Training: the frontier steps, and they alone, draw from the newest part of the window.
+    times = sorted(set(trainer.data.scene.train.times.tolist()))
+    span, draws = trainer.config.frontier_span, []
+    next_frontier = trainer.data.next_frontier
+
+    def recorded(window: float, span: float) -> TrainBatch:
+        batch = next_frontier(window, span)
+        draws.append((trainer.step, window, batch.time))
+        return batch
+
+    monkeypatch.setattr(trainer.data, "next_frontier", recorded)
+    while trainer.step < 24:
+        trainer.train_step(trainer.step)
+        trainer.step += 1
+    assert [step for step, _, _ in draws] == frontier
+    for _, window, time in draws:
+        latest = max(t for t in times if t <= window)
+        assert min(window - span, latest) <= time <= window
+
+
+def test_frontier_settings_are_checked() -> None:
+    from dyngs.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="--frontier-share must be in"):
+        tiny_config(frontier_share=1.5)
+    with pytest.raises(ConfigError, match="--frontier-span must be in"):
+        tiny_config(frontier_span=0.0)
 
 
 def test_resume_is_bit_identical_on_cpu(tmp_path: Path) -> None:
