@@ -98,20 +98,22 @@ def test_frontier_settings_are_checked() -> None:
 
 
 def test_resume_is_bit_identical_on_cpu(tmp_path: Path) -> None:
-    config = tiny_config(max_iters=8, warmup_iters=3)
+    # Resumed halfway through the time ramp (steps 3-14), with frontier draws before and
+    # after the checkpoint, from a span wide enough to hold several views.
+    config = tiny_config(max_iters=16, warmup_iters=3, time_ramp=0.75, frontier_span=0.5)
     straight = Trainer(config, tmp_path / "a", NullWriter())
-    for step in range(8):
+    for step in range(16):
         straight.train_step(step)
 
     first = Trainer(config, tmp_path / "b", NullWriter())
-    for step in range(4):
+    for step in range(6):
         first.train_step(step)
         first.step = step + 1
     first.save()
     resumed = Trainer(config, tmp_path / "b", NullWriter())
     resumed.load(first.checkpoint_path())
-    assert resumed.step == 4
-    for step in range(4, 8):
+    assert resumed.step == 6
+    for step in range(6, 16):
         resumed.train_step(step)
 
     a, b = straight.model.state_dict(), resumed.model.state_dict()
