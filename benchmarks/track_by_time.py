@@ -39,9 +39,9 @@ by_time = _psnr_by_time.by_time
 def fit_by_time(trainer: Trainer, bins: int) -> list[float | None]:
     """Mean PSNR of the training views in each of `bins` spans of t, as the model is now."""
     frames = []
+    deform = trainer.deforming(trainer.step)
     with torch.no_grad():
         for view in trainer.data.views("train"):
-            deform = trainer.deforming(trainer.step)
             gaussians = trainer.model.at(view.time, trainer.active_sh, deform=deform)
             rgb = trainer.renderer(gaussians, view.camera, trainer.background).rgb.clamp(0, 1)
             frames.append({"time": view.time, "psnr": float(psnr(rgb, view.image))})
