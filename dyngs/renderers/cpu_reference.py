@@ -29,6 +29,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
+import torch.nn.functional as F
 from jaxtyping import Bool, Float, Int
 from torch import Tensor
 
@@ -406,6 +407,17 @@ def _chunks(counts: list[int], budget: int) -> list[tuple[int, int]]:
     return ranges
 
 
+def zero_below(x: Tensor, floor: float) -> Tensor:
+    """`x` where x ≥ `floor` (compared in x's dtype), 0 elsewhere; the gradient passes where
+    x is kept. The same values and gradient as `x.masked_fill(x < floor, 0)`, but
+    `F.threshold` (which keeps x > θ; θ here is the largest number of x's dtype below
+    `floor`) ran 20-40× faster than boolean masking on the benchmark CPU, where the two
+    masks of compositing took 13 % of rasterisation (docs/RENDERER.md)."""
+    level = torch.tensor(floor, dtype=x.dtype)
+    theta = torch.nextafter(level, torch.tensor(-math.inf, dtype=x.dtype))
+    return F.threshold(x, float(theta), 0.0)
+
+
 def _composite_chunk(
     screen: ScreenGaussians,
     bins: _Bins,
@@ -450,12 +462,16 @@ def _composite_chunk(
         exponent = exponent.clamp_min(math.log(guards.alpha_min) - 1)
 
     alpha = torch.exp(exponent).clamp_max(guards.alpha_max)
-    alpha = alpha.masked_fill(alpha < guards.alpha_min, 0)
+    if guards.alpha_min > 0:
+        alpha = zero_below(alpha, guards.alpha_min)
     transmit = torch.cumprod(1 - alpha, dim=2)  # transmittance after each Gaussian
     before = torch.cat((torch.ones_like(transmit[..., :1]), transmit[..., :-1]), dim=2)
-    # Transmittance only falls, so "stop before T would drop below the floor" is exactly
-    # "drop every pair whose T after it is below the floor".
-    weight = (alpha * before).masked_fill(transmit < guards.transmittance_min, 0)
+    weight = alpha * before
+    if guards.transmittance_min > 0:
+        # Transmittance only falls, so "stop before T would drop below the floor" is exactly
+        # "drop every pair whose T after it is below the floor". The sign of the kept T is
+        # that 0/1 mask; multiplying by it is exact (× 1 or × 0) and has no gradient.
+        weight = weight * zero_below(transmit.detach(), guards.transmittance_min).sign()
     if contribution is not None:
         # Count only pixels inside the image (edge tiles overhang it). Padded slots have zero
         # weight, so adding them to their stand-in row is harmless.

@@ -17,6 +17,7 @@ from dyngs.renderers.cpu_reference import (
     CpuReferenceRenderer,
     project,
     rasterize,
+    zero_below,
 )
 from dyngs.types import Camera, Gaussians
 from tests.renderers.oracle import render_oracle
@@ -351,6 +352,38 @@ def test_far_below_threshold_pairs_are_dropped_exactly() -> None:
     assert peak_alpha(0.5) == pytest.approx(0.5, rel=1e-12)
     assert peak_alpha(threshold * 1.001) == pytest.approx(threshold * 1.001, rel=1e-12)
     assert peak_alpha(threshold * 0.999) == 0.0
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("floor", [1 / 255, 1e-4, 0.5])
+def test_zero_below_is_the_boolean_mask_exactly(dtype: torch.dtype, floor: float) -> None:
+    """`zero_below` (the fast path compositing uses) against the obvious definition,
+    `x.masked_fill(x < floor, 0)`, bit for bit in value and gradient, including the
+    numbers of the dtype on either side of the floor and the floor itself."""
+    at = torch.tensor(floor, dtype=dtype)
+    edges = [at]
+    for direction in (-math.inf, math.inf):
+        step = at
+        for _ in range(3):
+            step = torch.nextafter(step, torch.tensor(direction, dtype=dtype))
+            edges.append(step)
+    x = torch.cat(
+        (
+            torch.stack(edges),
+            torch.rand(200, dtype=dtype, generator=torch.Generator().manual_seed(0)),
+            torch.tensor([0.0, 1.0], dtype=dtype),
+        )
+    )
+    fast_input = x.clone().requires_grad_()
+    slow_input = x.clone().requires_grad_()
+    fast = zero_below(fast_input, floor)
+    slow = slow_input.masked_fill(slow_input < floor, 0)
+    assert torch.equal(fast, slow)
+    assert (fast[: len(edges)] > 0).tolist() == [bool(e >= at) for e in edges]
+    weights = torch.linspace(1, 2, len(x), dtype=dtype)
+    (fast * weights).sum().backward()
+    (slow * weights).sum().backward()
+    assert torch.equal(fast_input.grad, slow_input.grad)
 
 
 @pytest.mark.parametrize("seed", range(4))
