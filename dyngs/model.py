@@ -19,6 +19,7 @@ from dyngs.fields.base import Field
 from dyngs.fields.heads import DeformationHead, Deltas
 from dyngs.geometry import normalize_quaternion
 from dyngs.losses.arap import knn
+from dyngs.ops import finite_rows
 from dyngs.sh import num_sh_bases, rgb_to_sh0
 from dyngs.types import Gaussians, SceneBox
 
@@ -113,8 +114,7 @@ class CanonicalGaussians(nn.Module):
 
     def finite_rows(self) -> Bool[Tensor, " N"]:
         """Gaussians whose every raw parameter is finite (the others are culled when drawn)."""
-        rows = torch.cat([p.detach().reshape(len(self), -1) for p in self.params().values()], 1)
-        return torch.isfinite(rows).all(dim=1)
+        return finite_rows(*self.params().values())
 
     def replace(self, values: dict[str, Tensor]) -> None:
         """Swap every per-Gaussian parameter for a new tensor (after densification or on
@@ -188,7 +188,7 @@ class DynamicGaussians(nn.Module):
         if index is None and not bool(self.dynamic.all()):
             index = self.dynamic.nonzero().squeeze(1)
         xyz = means if index is None else means.index_select(0, index)
-        xyz = torch.where(xyz.isfinite().all(dim=-1, keepdim=True), xyz, 0.0)  # see raw_at
+        xyz = torch.where(finite_rows(xyz)[:, None], xyz, 0.0)  # see raw_at
         times = xyz.new_full((len(xyz), 1), t)
         return self.head(self.field(xyz, times)), index
 

@@ -11,6 +11,7 @@ import torch
 from jaxtyping import Float
 from torch import Tensor, nn
 
+from dyngs.ops import zero_nonfinite
 from dyngs.types import SceneBox
 
 
@@ -33,7 +34,7 @@ def space_time(
     if t.ndim != 2 or t.shape[1] != 1 or t.shape[0] not in (n, 1):
         raise ValueError(f"t must be [N, 1] (or [1, 1]) for N = {n}, got {tuple(t.shape)}")
     coords = torch.cat([box.normalize(xyz), (t * 2.0 - 1.0).expand(n, 1)], dim=1)
-    return torch.where(torch.isfinite(coords), coords, 0.0)
+    return zero_nonfinite(coords)
 
 
 def init_linear_(layer: nn.Linear, generator: torch.Generator | None = None) -> nn.Linear:

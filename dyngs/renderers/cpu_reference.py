@@ -35,7 +35,7 @@ from torch import Tensor
 
 from dyngs.errors import ConfigError
 from dyngs.geometry import covariance_3d
-from dyngs.ops import gather
+from dyngs.ops import finite_rows, gather
 from dyngs.renderers.base import Guards, RenderOutput
 from dyngs.sh import eval_sh
 from dyngs.types import Camera, Gaussians
@@ -127,15 +127,6 @@ class CpuReferenceRenderer:
         )
 
 
-def _finite_rows(*tensors: Tensor) -> Bool[Tensor, " N"]:
-    n = tensors[0].shape[0]
-    ok = torch.ones(n, dtype=torch.bool, device=tensors[0].device)
-    for t in tensors:
-        # An explicit row width, not -1: reshape cannot infer -1 for an empty scene (N = 0).
-        ok &= torch.isfinite(t.reshape(n, math.prod(t.shape[1:]))).all(dim=1)
-    return ok
-
-
 def project(
     gaussians: Gaussians, camera: Camera, guards: Guards, antialiased: bool = False
 ) -> ScreenGaussians:
@@ -145,7 +136,7 @@ def project(
     # Non-finite rows are replaced by harmless values *before* any arithmetic, so that
     # neither they nor their gradients (0·NaN = NaN) can leak into the rest of the scene.
     used_colors = g.colors if g.sh_degree is None else g.colors[:, : (g.sh_degree + 1) ** 2]
-    finite = _finite_rows(g.means, g.quats, g.scales, g.opacities, used_colors)
+    finite = finite_rows(g.means, g.quats, g.scales, g.opacities, used_colors)
     keep = finite[:, None]
     means = torch.where(keep, g.means, 0).to(dtype)
     quats = torch.where(keep, g.quats, 0).to(dtype)
@@ -185,7 +176,7 @@ def project(
     # inf, and then a conic entry is inf / inf = NaN). Such rows are culled, as the oracle
     # does; a finite det implies finite a_d, b, c_d and so a finite conic.
     valid = finite & in_depth & (det > 0) & (opacities >= guards.alpha_min)
-    valid &= torch.isfinite(det) & torch.isfinite(means2d).all(dim=-1)
+    valid &= finite_rows(det, means2d)
     det = torch.where(valid, det, 1.0)
     conics = torch.stack((c_d / det, -b / det, a_d / det), dim=-1)
 

@@ -26,7 +26,6 @@ How our guards map onto gsplat (v1.4+):
 from __future__ import annotations
 
 import importlib.util
-import math
 from dataclasses import dataclass
 
 import torch
@@ -35,6 +34,7 @@ from torch import Tensor
 
 from dyngs.errors import UserError
 from dyngs.geometry import normalize_quaternion
+from dyngs.ops import finite_rows
 from dyngs.renderers.base import Guards, RenderOutput
 from dyngs.types import Camera, Gaussians
 
@@ -89,10 +89,7 @@ class CudaTileRenderer:
         device = g.means.device
         n = len(g)
         used = g.colors if g.sh_degree is None else g.colors[:, : (g.sh_degree + 1) ** 2]
-        finite = torch.ones(n, dtype=torch.bool, device=device)
-        for t in (g.means, g.quats, g.scales, g.opacities, used):
-            # An explicit row width, not -1: reshape cannot infer -1 when N = 0.
-            finite &= torch.isfinite(t.reshape(n, math.prod(t.shape[1:]))).all(dim=1)
+        finite = finite_rows(g.means, g.quats, g.scales, g.opacities, used)
         keep = finite[:, None]
         # Only the coefficients in use are handed over, so that nothing gsplat reads can
         # hold a value the finiteness check did not see.
