@@ -8,13 +8,17 @@ runs of the same model have differed by 1.7×). This script evaluates every run 
 (A, B, A, B, …) so that slow spells hit them alike, and reports the median over the
 repeats of each evaluation's median frame time. Quality metrics are not re-reported:
 they do not change between evaluations. `--tile-size auto 8` times every run with each
-cpu-reference tile size as well (the image does not depend on it).
+cpu-reference tile size as well (the image does not depend on it), and `--code
+before=/tmp/old-checkout after=.` with each version of dyngs (each evaluation runs with
+that checkout first on PYTHONPATH), so that a speed change is measured within one
+session of the machine rather than across two.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import statistics
 import subprocess
@@ -42,14 +46,36 @@ def with_tile_size(run: Path, tile_size: str, scratch: Path) -> Path:
     return copy
 
 
-def evaluate_once(run: Path, split: str, output: Path) -> dict[str, float]:
+def evaluate_once(
+    run: Path, split: str, output: Path, code: Path | None = None
+) -> dict[str, float]:
     command = [
         sys.executable, "-m", "dyngs.tools.eval", "--load-dir", str(run), "--split", split,
         "--output", str(output), "--no-save-images",
     ]  # fmt: skip
-    subprocess.run(command, check=True, capture_output=True)
+    env = dict(os.environ)
+    if code is not None:
+        env["PYTHONPATH"] = os.pathsep.join(
+            filter(None, (str(code.resolve()), env.get("PYTHONPATH")))
+        )
+    subprocess.run(command, check=True, capture_output=True, env=env)
     result = json.loads(output.read_text())
     return {key: float(result[key]) for key in ("render_ms_median", "deformation_ms")}
+
+
+def parse_codes(items: list[str]) -> dict[str, Path | None]:
+    """--code LABEL=PATH items as {label: checkout}; none: the installed dyngs."""
+    if not items:
+        return {"installed": None}
+    codes: dict[str, Path | None] = {}
+    for item in items:
+        label, sep, path = item.partition("=")
+        if not sep or not label or not (Path(path) / "dyngs" / "__init__.py").is_file():
+            raise SystemExit(f"--code {item!r}: expected LABEL=PATH, PATH a dyngs checkout")
+        if label in codes:
+            raise SystemExit(f"--code {item!r}: label {label!r} given twice")
+        codes[label] = Path(path)
+    return codes
 
 
 def main() -> None:
@@ -65,24 +91,34 @@ def main() -> None:
         help="cpu-reference tile sizes to re-time each run with (N, auto or as-trained); "
         "every run is timed with each, interleaved",
     )
+    parser.add_argument(
+        "--code",
+        nargs="+",
+        default=[],
+        metavar="LABEL=PATH",
+        help="versions of dyngs to time every run with, interleaved: a checkout (e.g. a "
+        "`git worktree`) put first on PYTHONPATH; default: the installed one",
+    )
     args = parser.parse_args()
+    codes = parse_codes(args.code)
 
-    cases = [(run, tile) for run in args.runs for tile in args.tile_size]
-    samples: dict[tuple[Path, str], list[dict[str, float]]] = {case: [] for case in cases}
+    cases = [(run, tile, code) for run in args.runs for tile in args.tile_size for code in codes]
+    samples: dict[tuple[Path, str, str], list[dict[str, float]]] = {case: [] for case in cases}
     with tempfile.TemporaryDirectory() as scratch:
         for repeat in range(args.repeats):
-            for i, (run, tile) in enumerate(cases):
+            for i, (run, tile, code) in enumerate(cases):
                 out = Path(scratch) / f"{i}_{repeat}.json"
                 folder = run if tile == "as-trained" else with_tile_size(run, tile, Path(scratch))
-                samples[run, tile].append(evaluate_once(folder, args.split, out))
-                print(f"repeat {repeat + 1}/{args.repeats}  {run} (tile {tile})  "
-                      f"{samples[run, tile][-1]}", flush=True)  # fmt: skip
+                samples[run, tile, code].append(evaluate_once(folder, args.split, out, codes[code]))
+                print(f"repeat {repeat + 1}/{args.repeats}  {run} (tile {tile}, code {code})  "
+                      f"{samples[run, tile, code][-1]}", flush=True)  # fmt: skip
 
     rows = []
-    for (run, tile), values in samples.items():
+    for (run, tile, code), values in samples.items():
         row = {
             "run": str(run),
             "tile_size": tile,
+            "code": code,
             "repeats": len(values),
             "render_ms_median": statistics.median(v["render_ms_median"] for v in values),
             "render_ms_spread": [min(v["render_ms_median"] for v in values),
@@ -91,7 +127,7 @@ def main() -> None:
         }  # fmt: skip
         rows.append(row)
         print(
-            f"{run} (tile {tile}): render {row['render_ms_median']:.1f} ms "
+            f"{run} (tile {tile}, code {code}): render {row['render_ms_median']:.1f} ms "
             f"(spread {row['render_ms_spread'][0]:.1f}-{row['render_ms_spread'][1]:.1f}), "
             f"deformation {row['deformation_ms']:.2f} ms"
         )

@@ -1,0 +1,40 @@
+"""benchmarks/rerender.py: every run is timed with every code version; bad ones are refused."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).parents[2]
+spec = importlib.util.spec_from_file_location("rerender", ROOT / "benchmarks" / "rerender.py")
+assert spec is not None and spec.loader is not None
+rerender = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(rerender)
+
+
+def test_code_versions_are_parsed_and_bad_ones_refused(tmp_path: Path) -> None:
+    assert rerender.parse_codes([]) == {"installed": None}
+    assert rerender.parse_codes([f"a={ROOT}", f"b={ROOT}"]) == {"a": ROOT, "b": ROOT}
+    for bad in (str(ROOT), f"={ROOT}", f"a={tmp_path}"):
+        with pytest.raises(SystemExit, match="LABEL=PATH"):
+            rerender.parse_codes([bad])
+    with pytest.raises(SystemExit, match="given twice"):
+        rerender.parse_codes([f"a={ROOT}", f"a={ROOT}"])
+
+
+def test_every_run_is_timed_with_every_code_version(
+    tiny_run: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    output = tmp_path / "rerender.json"
+    argv = ["rerender.py", str(tiny_run), "--repeats", "1", "--output", str(output)]
+    monkeypatch.setattr(sys, "argv", [*argv, "--code", f"one={ROOT}", f"two={ROOT}"])
+    rerender.main()
+    rows = json.loads(output.read_text())["results"]
+    assert [row["code"] for row in rows] == ["one", "two"]
+    for row in rows:
+        assert row["run"] == str(tiny_run) and row["repeats"] == 1
+        assert row["render_ms_median"] > 0 and row["deformation_ms"] >= 0
