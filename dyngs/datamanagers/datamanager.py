@@ -314,6 +314,19 @@ class DataManager:
         pick = start + int(torch.randint(end - start, (1,), generator=generator))
         return served.batch(self._by_time[pick])
 
+    def train_poses(self, max_time: float = 1.0, limit: int = 0) -> list[tuple[Camera, float]]:
+        """Camera and time of each training view with t ≤ max_time (the earliest views when
+        none is that early), in time order, without reading an image. With `limit` > 0, at
+        most that many, spread evenly over the list."""
+        if limit < 0:
+            raise ValueError(f"limit must be ≥ 0, got {limit}")
+        served = self._splits["train"]
+        end = bisect_right(self._sorted_times, max(max_time, self._earliest))
+        picks = (
+            range(end) if limit == 0 or end <= limit else [i * end // limit for i in range(limit)]
+        )
+        return [(served.cameras[self._by_time[i]], self._sorted_times[i]) for i in picks]
+
     def views(self, split: str) -> Iterator[TrainBatch]:
         """Every view of "train", "val" or "test", in order."""
         if split not in self._splits:

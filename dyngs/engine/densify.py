@@ -19,6 +19,7 @@ from jaxtyping import Bool, Float, Int
 from torch import Tensor
 
 from dyngs.engine.optim import replace_rows
+from dyngs.errors import ConfigError
 from dyngs.geometry import normalize_quaternion, quaternion_to_rotation
 from dyngs.model import GAUSSIAN_PARAMS, DynamicGaussians
 from dyngs.renderers.base import RenderOutput
@@ -55,10 +56,21 @@ class DensifyConfig:
     any view (blending weight summed over its pixels): even wholly wrong, such a Gaussian
     moves a view's L1 by under half a pixel, so it buys nothing for its cost (the
     accumulated-weight importance of LightGaussian, Fan et al. 2023). 0 switches it off."""
+    importance_views: int = 100
+    """Before each refinement, render this many training views of the time window (all of
+    them when fewer; spread evenly over time), without gradient, and prune by the largest
+    share each Gaussian makes of any of them. 0: only the views drawn since the last
+    refinement count, which on the demo are under half of them (docs/CAPACITY.md)."""
     max_gaussians: int | None = None
     """The Gaussian budget: densification never goes beyond it (highest gradients first). The
     cap grows linearly toward it over the densification window. None: sized from the data
     (dyngs/capacity.py)."""
+
+    def __post_init__(self) -> None:
+        if self.importance_views < 0:
+            raise ConfigError(
+                f"--densify.importance-views must be ≥ 0, got {self.importance_views}"
+            )
 
 
 @dataclass

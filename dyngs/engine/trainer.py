@@ -410,6 +410,8 @@ class Trainer:
             self.revisit_motion()
         self.consider_sh_degree(step)
         if is_refine_step(cfg.densify, step, cfg.max_iters):
+            if cfg.densify.prune_importance > 0 and cfg.densify.importance_views > 0:
+                self.densify_state.importance = self.measure_importance(step)
             plan = plan_refinement(
                 cfg.densify,
                 self.model,
@@ -429,6 +431,25 @@ class Trainer:
             for moment in self.optimizer.state.get(logits, {}).values():
                 if isinstance(moment, Tensor) and moment.ndim > 0:
                     moment.zero_()
+
+    def measure_importance(self, step: int) -> Tensor:
+        """Each Gaussian's largest share (blending weight summed over pixels) of any of
+        `--densify.importance-views` training views of the time window at `step`, rendered
+        now without gradient. The views drawn since the last refinement are a sample: on
+        the demo, under half of the window's views, so a Gaussian that only some viewpoints
+        need was often pruned for want of being seen from them."""
+        cfg = self.config
+        deform = self.deforming(step) and self.model.any_dynamic()
+        importance = torch.zeros(len(self.model.canonical), device=self.device)
+        poses = self.data.train_poses(self.time_window(step), cfg.densify.importance_views)
+        with torch.no_grad():
+            for camera, t in poses:
+                gaussians = self.model.at(t, self.active_sh, deform=deform)
+                contribution = self.renderer(gaussians, camera, self.background).contribution
+                if contribution is None:  # a renderer that cannot measure it never prunes by it
+                    return importance.fill_(math.inf)
+                importance = torch.maximum(importance, contribution.to(importance.dtype))
+        return importance
 
     def apply_topology(self, change: TopologyChange, values: dict[str, Tensor]) -> None:
         apply_topology(self.model, self.optimizer, change, values)
