@@ -119,6 +119,35 @@ def test_frontier_draws_are_reproducible_resumable_and_leave_the_epochs_alone() 
     assert _frontier(resumed, 1.0, 0.9, 24) == drawn
 
 
+# Train times are k/6, k = 0..6: (window, limit, the views train_poses gives, in order).
+POSE_CASES = [
+    (1.0, 0, [0, 1, 2, 3, 4, 5, 6]),
+    (0.5, 0, [0, 1, 2, 3]),  # 3/6 = 0.5 is inside the window
+    (0.49, 0, [0, 1, 2]),
+    (-1.0, 0, [0]),  # before the first view: the earliest stands in, as in next_train
+    (1.0, 3, [0, 2, 4]),  # spread over the seven: i·7 // 3
+    (1.0, 7, [0, 1, 2, 3, 4, 5, 6]),
+    (0.5, 9, [0, 1, 2, 3]),  # a limit above the count gives them all
+]
+
+
+@pytest.mark.parametrize(("window", "limit", "expected"), POSE_CASES)
+def test_train_poses_are_the_windows_views_in_time_order(
+    window: float, limit: int, expected: list[int]
+) -> None:
+    manager = _manager(0)
+    poses = manager.train_poses(window, limit)
+    split = manager.scene.train
+    assert [t for _, t in poses] == [float(split.times[i]) for i in expected]
+    for (camera, _), i in zip(poses, expected, strict=True):
+        assert torch.equal(camera.world_to_camera, split.cameras[i].world_to_camera)
+    before = manager.state_dict()
+    manager.train_poses(1.0)
+    assert manager.state_dict() == before  # the training sequence is untouched
+    with pytest.raises(ValueError, match="limit must be"):
+        manager.train_poses(1.0, -1)
+
+
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("cache_bytes", [2 << 30, 0])
 def test_batches_are_float_images_whether_cached_or_not(cache_bytes: int, device: str) -> None:

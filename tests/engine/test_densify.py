@@ -2,9 +2,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
 import torch
 
 from dyngs.engine.densify import DensifyConfig, apply_topology, budget_at, plan_refinement
+from dyngs.errors import ConfigError
 from dyngs.model import GAUSSIAN_PARAMS
 from tests.engine.helpers import tiny_trainer
 
@@ -71,3 +73,8 @@ def test_budget_grows_on_a_schedule() -> None:
     caps = [budget_at(config, step, max_iters=1100) for step in (0, 100, 325, 550, 1000)]
     assert caps == [250, 250, 625, 1000, 1000]
     assert budget_at(DensifyConfig(max_gaussians=None), 10, 100) > 10**12
+
+
+def test_importance_views_must_not_be_negative() -> None:
+    with pytest.raises(ConfigError, match="importance-views must be ≥ 0"):
+        DensifyConfig(importance_views=-1)

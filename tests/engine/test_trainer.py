@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import pytest
@@ -95,6 +96,53 @@ def test_frontier_settings_are_checked() -> None:
         tiny_config(frontier_share=1.5)
     with pytest.raises(ConfigError, match="--frontier-span must be in"):
         tiny_config(frontier_span=0.0)
+
+
+def test_importance_is_the_largest_share_of_any_view_of_the_window(tmp_path: Path) -> None:
+    """measure_importance against a brute-force loop over every training view with
+    t ≤ window."""
+    trainer = tiny_trainer(tmp_path, max_iters=40, warmup_iters=2, time_ramp=0.5)
+    step = 12  # the window is part-way open
+    window = trainer.time_window(step)
+    split = trainer.data.scene.train
+    views = [i for i in range(len(split)) if float(split.times[i]) <= window]
+    assert 0 < len(views) < len(split)
+    expected = torch.zeros(len(trainer.model.canonical))
+    with torch.no_grad():
+        for i in views:
+            gaussians = trainer.model.at(float(split.times[i]), trainer.active_sh)
+            out = trainer.renderer(gaussians, split.cameras[i], trainer.background)
+            assert out.contribution is not None
+            expected = torch.maximum(expected, out.contribution)
+    assert expected.max() > 0.5 > expected.min()  # both sides of the threshold occur
+    torch.testing.assert_close(trainer.measure_importance(step), expected, rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("views", [0, 100])
+def test_refinement_prunes_by_the_measured_importance(
+    tmp_path: Path, views: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """With --densify.importance-views > 0 a refinement prunes exactly the Gaussians the
+    measure finds weak, whatever was drawn since the last one; with 0 it keeps the
+    importance gathered from the drawn views."""
+    trainer = tiny_trainer(tmp_path, max_iters=40)
+    densify = dataclasses.replace(
+        trainer.config.densify, refine_start=0, refine_every=10, importance_views=views
+    )
+    trainer.config = dataclasses.replace(trainer.config, densify=densify)
+    n = len(trainer.model.canonical)
+    weak = torch.zeros(n, dtype=torch.bool)
+    weak[::3] = True
+    measured = torch.where(weak, 0.1, 5.0)
+    monkeypatch.setattr(trainer, "measure_importance", lambda step: measured.clone())
+    state = trainer.densify_state
+    state.count.fill_(1)  # every Gaussian was seen; no gradient asks for growth
+    drawn = torch.where(weak, 5.0, 0.1)  # what the drawn views said: the opposite
+    state.importance.copy_(drawn)
+    before = trainer.model.canonical.means.detach().clone()
+    trainer.refine(10)
+    pruned = weak if views > 0 else drawn < densify.prune_importance
+    assert torch.equal(trainer.model.canonical.means.detach(), before[~pruned])
 
 
 def test_resume_is_bit_identical_on_cpu(tmp_path: Path) -> None:
