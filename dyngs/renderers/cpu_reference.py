@@ -400,10 +400,11 @@ def _chunks(counts: list[int], budget: int) -> list[tuple[int, int]]:
 
 def zero_below(x: Tensor, floor: float) -> Tensor:
     """`x` where x ≥ `floor` (compared in x's dtype), 0 elsewhere; the gradient passes where
-    x is kept. The same values and gradient as `x.masked_fill(x < floor, 0)`, but
-    `F.threshold` (which keeps x > θ; θ here is the largest number of x's dtype below
-    `floor`) ran 20-40× faster than boolean masking on the benchmark CPU, where the two
-    masks of compositing took 13 % of rasterisation (docs/RENDERER.md)."""
+    x is kept. The same values and gradient as `x.masked_fill(x < floor, 0)`, bit for bit,
+    without a boolean mask: `F.threshold` keeps x > θ, and θ here is the largest number of
+    x's dtype below `floor`. On a random mask it ran 20-50× faster than `masked_fill` on
+    the benchmark CPU; on trained frames, whose masks come in long runs, rasterisation was
+    5-12 % faster (docs/RENDERER.md)."""
     level = torch.tensor(floor, dtype=x.dtype)
     theta = torch.nextafter(level, torch.tensor(-math.inf, dtype=x.dtype))
     return F.threshold(x, float(theta), 0.0)
