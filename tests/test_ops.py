@@ -69,4 +69,5 @@ def test_zero_nonfinite_is_where_isfinite(dtype: torch.dtype) -> None:
     weights = torch.linspace(-1, 2, base.numel(), dtype=dtype).view_as(base)
     (fast * weights).sum().backward()
     (slow * weights).sum().backward()
+    assert fast_input.grad is not None and slow_input.grad is not None
     assert torch.equal(fast_input.grad, slow_input.grad)

@@ -383,6 +383,7 @@ def test_zero_below_is_the_boolean_mask_exactly(dtype: torch.dtype, floor: float
     weights = torch.linspace(1, 2, len(x), dtype=dtype)
     (fast * weights).sum().backward()
     (slow * weights).sum().backward()
+    assert fast_input.grad is not None and slow_input.grad is not None
     assert torch.equal(fast_input.grad, slow_input.grad)
 
 
