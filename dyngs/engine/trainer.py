@@ -435,9 +435,11 @@ class Trainer:
     def measure_importance(self, step: int) -> Tensor:
         """Each Gaussian's largest share (blending weight summed over pixels) of any of
         `--densify.importance-views` training views of the time window at `step`, rendered
-        now without gradient. The views drawn since the last refinement are only a sample:
-        on the demo, once the window is half open, 13-30 % of its views have not been
-        drawn, and a Gaussian that only those viewpoints need looked unimportant."""
+        now without gradient. The views drawn since the last refinement were both a
+        sample and stale: on the demo, once the window is half open, 13-30 % of its views
+        had not been drawn, and a Gaussian that only those need looked unimportant; and a
+        view drawn 99 steps ago vouched for a Gaussian that has since faded
+        (docs/CAPACITY.md)."""
         cfg = self.config
         deform = self.deforming(step) and self.model.any_dynamic()
         importance = torch.zeros(len(self.model.canonical), device=self.device)
