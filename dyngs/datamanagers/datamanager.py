@@ -298,6 +298,11 @@ class DataManager:
             served.read_ahead(self._order[self._position])
         return batch
 
+    def _window_end(self, max_time: float) -> int:
+        """How many training views, in time order, have t ≤ max_time; when none has, the
+        earliest views stand in (as in `next_train`)."""
+        return bisect_right(self._sorted_times, max(max_time, self._earliest))
+
     def next_frontier(self, max_time: float, span: float) -> TrainBatch:
         """A training view from the newest `span` of the time window: drawn at random from
         those with max_time − span ≤ t ≤ max_time (the latest views before max_time when
@@ -306,7 +311,7 @@ class DataManager:
         """
         served = self._splits["train"]
         times = self._sorted_times
-        end = bisect_right(times, max(max_time, self._earliest))  # views with t ≤ max_time
+        end = self._window_end(max_time)
         low = min(max_time - span, times[end - 1])
         start = bisect_left(times, low, hi=end)
         generator = torch.Generator().manual_seed(self._seed + 2**62 + self._frontier_draws)
@@ -321,7 +326,7 @@ class DataManager:
         if limit < 0:
             raise ValueError(f"limit must be ≥ 0, got {limit}")
         served = self._splits["train"]
-        end = bisect_right(self._sorted_times, max(max_time, self._earliest))
+        end = self._window_end(max_time)
         picks = (
             range(end) if limit == 0 or end <= limit else [i * end // limit for i in range(limit)]
         )
