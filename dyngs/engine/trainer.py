@@ -241,7 +241,9 @@ class Trainer:
         probe = self.probe_degree()
         gaussians = self.model.at(batch.time, probe or self.active_sh, deform=deform)
         self.deformation_seconds += time.perf_counter() - started if deform else 0.0
-        out = self.renderer(gaussians, batch.camera, self.background)
+        out = self.renderer(
+            gaussians, batch.camera, self.background, contribution=self.prunes_by_drawn_views()
+        )
         self.nonfinite_culled += out.num_nonfinite.to(self.nonfinite_culled.device)
 
         mask = batch.mask if cfg.losses.masked else None
@@ -432,6 +434,14 @@ class Trainer:
                 if isinstance(moment, Tensor) and moment.ndim > 0:
                     moment.zero_()
 
+    def prunes_by_drawn_views(self) -> bool:
+        """Whether importance is the largest share of the views drawn since the last
+        refinement (`--densify.importance-views 0`), so that every training step must
+        measure its view's contributions. Otherwise no step does: `measure_importance`
+        renders the window's views just before each refinement."""
+        d = self.config.densify
+        return d.prune_importance > 0 and d.importance_views == 0
+
     def measure_importance(self, step: int) -> Tensor:
         """Each Gaussian's largest share (blending weight summed over pixels) of any of
         `--densify.importance-views` training views of the time window at `step`, rendered
@@ -447,7 +457,8 @@ class Trainer:
         with torch.no_grad():
             for camera, t in poses:
                 gaussians = self.model.at(t, self.active_sh, deform=deform)
-                contribution = self.renderer(gaussians, camera, self.background).contribution
+                out = self.renderer(gaussians, camera, self.background, contribution=True)
+                contribution = out.contribution
                 if contribution is None:  # a renderer that cannot measure it never prunes by it
                     return importance.fill_(math.inf)
                 importance = torch.maximum(importance, contribution.to(importance.dtype))

@@ -61,13 +61,21 @@ class RenderOutput:
     waits for the device; the caller decides when to read it."""
     contribution: Float[Tensor, " N"] | None = None
     """Each Gaussian's blending weight αT summed over the image's pixels (no gradient): how
-    much of the picture it makes, for pruning by importance. None where a renderer cannot
-    measure it."""
+    much of the picture it makes, for pruning by importance. None unless the call asked
+    for it (`contribution=True`), and where a renderer cannot measure it."""
 
 
 class Renderer(Protocol):
     """Draws Gaussians from one camera over a background colour."""
 
     def __call__(
-        self, gaussians: Gaussians, camera: Camera, background: Float[Tensor, 3]
-    ) -> RenderOutput: ...
+        self,
+        gaussians: Gaussians,
+        camera: Camera,
+        background: Float[Tensor, 3],
+        *,
+        contribution: bool = False,
+    ) -> RenderOutput:
+        """`contribution`: also measure `RenderOutput.contribution`. It costs a pass over
+        every Gaussian–pixel pair, so only pruning asks for it."""
+        ...

@@ -97,13 +97,20 @@ class CpuReferenceRenderer:
         self.guards = guards or Guards()
 
     def __call__(
-        self, gaussians: Gaussians, camera: Camera, background: Float[Tensor, 3]
+        self,
+        gaussians: Gaussians,
+        camera: Camera,
+        background: Float[Tensor, 3],
+        *,
+        contribution: bool = False,
     ) -> RenderOutput:
         screen = project(gaussians, camera, self.guards, antialiased=self.config.antialiased)
         if screen.means2d.requires_grad:
             screen.means2d.retain_grad()
-        contribution = torch.zeros(
-            len(gaussians), dtype=screen.colors.dtype, device=screen.colors.device
+        weights = (
+            torch.zeros(len(gaussians), dtype=screen.colors.dtype, device=screen.colors.device)
+            if contribution
+            else None
         )
         rgb, alpha, depth = rasterize(
             screen,
@@ -113,7 +120,7 @@ class CpuReferenceRenderer:
             guards=self.guards,
             tile_size=self.config.tile_size,
             chunk_elements=self.config.chunk_elements,
-            contribution=contribution,
+            contribution=weights,
         )
         return RenderOutput(
             rgb=rgb,
@@ -123,7 +130,7 @@ class CpuReferenceRenderer:
             radii=torch.where(screen.visible[:, None], screen.extents.ceil(), 0).int(),
             visible=screen.visible,
             num_nonfinite=screen.num_nonfinite,
-            contribution=contribution,
+            contribution=weights,
         )
 
 

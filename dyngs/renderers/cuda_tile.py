@@ -83,8 +83,15 @@ class CudaTileRenderer:
         self.guards = guards or Guards()
 
     def __call__(
-        self, gaussians: Gaussians, camera: Camera, background: Float[Tensor, " 3"]
+        self,
+        gaussians: Gaussians,
+        camera: Camera,
+        background: Float[Tensor, " 3"],
+        *,
+        contribution: bool = False,
     ) -> RenderOutput:
+        """`contribution` is not measured here (gsplat does not report it): the output's is
+        None, so pruning by importance keeps every Gaussian."""
         g, guards = gaussians, self.guards
         device = g.means.device
         n = len(g)

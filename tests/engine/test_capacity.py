@@ -6,6 +6,9 @@ import dataclasses
 from pathlib import Path
 from typing import Any
 
+import pytest
+import torch
+
 from dyngs.capacity import (
     BUDGET_LIMITS,
     distinct_viewpoints,
@@ -79,8 +82,10 @@ def test_gaussians_that_make_almost_nothing_of_any_view_are_pruned(tmp_path: Pat
     assert plan_refinement(off, model, state, 100, trainer.extent) is None
 
 
-def test_the_renderer_measures_importance_during_training(tmp_path: Path) -> None:
-    trainer = tiny_trainer(tmp_path)
+def test_with_importance_views_0_each_step_measures_importance(tmp_path: Path) -> None:
+    densify = dataclasses.replace(tiny_config().densify, importance_views=0)
+    trainer = tiny_trainer(tmp_path, densify=densify)
+    assert trainer.prunes_by_drawn_views()
     stats = trainer.train_step(0)
     importance = trainer.densify_state.importance
     seen = trainer.densify_state.count > 0
@@ -90,6 +95,21 @@ def test_the_renderer_measures_importance_during_training(tmp_path: Path) -> Non
     assert total > 10.0
     assert abs(float(importance.sum()) - total) <= 1e-4 * total
     assert not bool(importance[~seen].any())
+
+
+@pytest.mark.parametrize("change", [{}, {"prune_importance": 0.0}])
+def test_otherwise_no_training_step_measures_importance(
+    tmp_path: Path, change: dict[str, Any]
+) -> None:
+    """With the window's views measured before each refinement (the default), or no
+    pruning by importance, nothing reads a step's contributions, so none are computed;
+    the importance left in the state is +inf, "never prune by it", until measured."""
+    densify = dataclasses.replace(tiny_config().densify, **change)
+    trainer = tiny_trainer(tmp_path, densify=densify)
+    assert not trainer.prunes_by_drawn_views()
+    stats = trainer.train_step(0)
+    assert stats.out.contribution is None
+    assert bool(torch.isinf(trainer.densify_state.importance).all())
 
 
 def test_a_run_too_short_to_densify_says_so(tmp_path: Path) -> None:

@@ -28,8 +28,8 @@ class PoisonedRenderer:
     def __init__(self, inner, bad_calls: set[int]) -> None:  # type: ignore[no-untyped-def]
         self.inner, self.bad_calls, self.calls = inner, bad_calls, 0
 
-    def __call__(self, gaussians, camera, background) -> RenderOutput:  # type: ignore[no-untyped-def]
-        out = self.inner(gaussians, camera, background)
+    def __call__(self, gaussians, camera, background, **options) -> RenderOutput:  # type: ignore[no-untyped-def]
+        out = self.inner(gaussians, camera, background, **options)
         if self.calls in self.bad_calls:
             out.rgb = out.rgb * float("nan")
         self.calls += 1

@@ -111,7 +111,9 @@ def test_importance_is_the_largest_share_of_any_view_of_the_window(tmp_path: Pat
     with torch.no_grad():
         for i in views:
             gaussians = trainer.model.at(float(split.times[i]), trainer.active_sh)
-            out = trainer.renderer(gaussians, split.cameras[i], trainer.background)
+            out = trainer.renderer(
+                gaussians, split.cameras[i], trainer.background, contribution=True
+            )
             assert out.contribution is not None
             expected = torch.maximum(expected, out.contribution)
     assert expected.max() > 0.5 > expected.min()  # both sides of the threshold occur

@@ -45,7 +45,7 @@ def test_float64_matches_oracle(seed: int, tile_size: int | None) -> None:
     gaussians, camera, background = random_scene(seed, 300, width, height, torch.float64, sh_degree)
     renderer = CpuReferenceConfig(tile_size=tile_size, antialiased=antialiased).build()
 
-    out = renderer(gaussians, camera, background)
+    out = renderer(gaussians, camera, background, contribution=True)
     ref = render_oracle(gaussians, camera, background, antialiased=antialiased)
 
     assert out.rgb.shape == (height, width, 3) and out.rgb.dtype == torch.float64
@@ -63,6 +63,11 @@ def test_float64_matches_oracle(seed: int, tile_size: int | None) -> None:
     assert out.contribution is not None and out.contribution.dtype == torch.float64
     assert _max_abs(out.contribution, ref.contribution) <= 1e-9 * width * height
     assert float(ref.contribution.max()) > 1.0
+    # Measuring it is optional and changes nothing else, bit for bit.
+    plain = renderer(gaussians, camera, background)
+    assert plain.contribution is None
+    for got, want in [(plain.rgb, out.rgb), (plain.alpha, out.alpha), (plain.depth, out.depth)]:
+        assert torch.equal(got, want)
 
 
 @pytest.mark.parametrize("seed", range(6))
@@ -75,7 +80,7 @@ def test_float32_matches_oracle(seed: int) -> None:
     )
     renderer = CpuReferenceConfig(antialiased=antialiased).build()
 
-    out = renderer(gaussians, camera, background)
+    out = renderer(gaussians, camera, background, contribution=True)
     ref = render_oracle(gaussians, camera, background, antialiased=antialiased)
 
     assert out.rgb.dtype == torch.float32
@@ -297,7 +302,7 @@ def test_chunking_changes_neither_image_nor_gradients(
         inputs = [t.clone().requires_grad_(True) for t in (gaussians.means, gaussians.colors)]
         g = replace(gaussians, means=inputs[0], colors=inputs[1])
         renderer = CpuReferenceConfig(chunk_elements=chunk_elements).build()
-        out = renderer(g, camera, background)
+        out = renderer(g, camera, background, contribution=True)
         (out.rgb.sum() + out.depth.sum()).backward()
         assert out.contribution is not None
         return out.rgb, out.depth, out.contribution, inputs[0].grad, inputs[1].grad  # type: ignore[return-value]
