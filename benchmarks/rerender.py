@@ -11,7 +11,9 @@ they do not change between evaluations. `--tile-size auto 8` times every run wit
 cpu-reference tile size as well (the image does not depend on it), and `--code
 before=/tmp/old-checkout after=.` with each version of dyngs (each evaluation runs with
 that checkout first on PYTHONPATH), so that a speed change is measured within one
-session of the machine rather than across two.
+session of the machine rather than across two. `--threads 1` times on one core: two
+threads share the machine's two cores with whatever else runs, and their times drifted
+by 30-50 % between sessions (docs/CAPACITY.md).
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ import subprocess
 import sys
 import tempfile
 from pathlib import Path
+from typing import Any
 
 import torch
 
@@ -47,8 +50,8 @@ def with_tile_size(run: Path, tile_size: str, scratch: Path) -> Path:
 
 
 def evaluate_once(
-    run: Path, split: str, output: Path, code: Path | None = None
-) -> dict[str, float]:
+    run: Path, split: str, output: Path, code: Path | None = None, threads: int | None = None
+) -> dict[str, Any]:
     command = [
         sys.executable, "-m", "dyngs.tools.eval", "--load-dir", str(run), "--split", split,
         "--output", str(output), "--no-save-images",
@@ -58,9 +61,13 @@ def evaluate_once(
         env["PYTHONPATH"] = os.pathsep.join(
             filter(None, (str(code.resolve()), env.get("PYTHONPATH")))
         )
+    if threads is not None:
+        env["OMP_NUM_THREADS"] = str(threads)  # PyTorch's CPU thread pool reads it at start
     subprocess.run(command, check=True, capture_output=True, env=env)
     result = json.loads(output.read_text())
-    return {key: float(result[key]) for key in ("render_ms_median", "deformation_ms")}
+    times = {key: float(result[key]) for key in ("render_ms_median", "deformation_ms")}
+    # Checkouts older than the field do not report it (None: unknown).
+    return times | {"cpu_threads": result.get("cpu_threads")}
 
 
 def parse_codes(items: list[str]) -> dict[str, Path | None]:
@@ -99,17 +106,29 @@ def main() -> None:
         help="versions of dyngs to time every run with, interleaved: a checkout (e.g. a "
         "`git worktree`) put first on PYTHONPATH; default: the installed one",
     )
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=None,
+        help="CPU threads each evaluation may use (default: PyTorch's choice). One thread "
+        "does not race the machine's other work for a second core, so its times drift less "
+        "between sessions",
+    )
     args = parser.parse_args()
     codes = parse_codes(args.code)
+    if args.threads is not None and args.threads < 1:
+        raise SystemExit(f"--threads must be ≥ 1, got {args.threads}")
 
     cases = [(run, tile, code) for run in args.runs for tile in args.tile_size for code in codes]
-    samples: dict[tuple[Path, str, str], list[dict[str, float]]] = {case: [] for case in cases}
+    samples: dict[tuple[Path, str, str], list[dict[str, Any]]] = {case: [] for case in cases}
     with tempfile.TemporaryDirectory() as scratch:
         for repeat in range(args.repeats):
             for i, (run, tile, code) in enumerate(cases):
                 out = Path(scratch) / f"{i}_{repeat}.json"
                 folder = run if tile == "as-trained" else with_tile_size(run, tile, Path(scratch))
-                samples[run, tile, code].append(evaluate_once(folder, args.split, out, codes[code]))
+                samples[run, tile, code].append(
+                    evaluate_once(folder, args.split, out, codes[code], args.threads)
+                )
                 print(f"repeat {repeat + 1}/{args.repeats}  {run} (tile {tile}, code {code})  "
                       f"{samples[run, tile, code][-1]}", flush=True)  # fmt: skip
 
@@ -124,6 +143,7 @@ def main() -> None:
             "render_ms_spread": [min(v["render_ms_median"] for v in values),
                                  max(v["render_ms_median"] for v in values)],
             "deformation_ms": statistics.median(v["deformation_ms"] for v in values),
+            "cpu_threads": values[0]["cpu_threads"],
         }  # fmt: skip
         rows.append(row)
         print(
@@ -135,7 +155,7 @@ def main() -> None:
         "platform": platform.platform(),
         "processor": platform.processor(),
         "torch": torch.__version__,
-        "threads": torch.get_num_threads(),
+        "threads": args.threads or torch.get_num_threads(),
     }
     args.output.parent.mkdir(parents=True, exist_ok=True)
     args.output.write_text(json.dumps({"machine": machine, "results": rows}, indent=2) + "\n")

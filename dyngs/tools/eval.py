@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
+import torch
 import tyro
 from rich.console import Console
 from rich.table import Table
@@ -83,6 +84,7 @@ def evaluate_run(
         "deform": run.deform,
         "renderer": renderer_name(run.config.renderer),
         "device": str(run.device),
+        "cpu_threads": torch.get_num_threads(),  # render_ms depends on it on CPU
     }
 
 

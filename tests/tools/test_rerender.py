@@ -38,3 +38,18 @@ def test_every_run_is_timed_with_every_code_version(
     for row in rows:
         assert row["run"] == str(tiny_run) and row["repeats"] == 1
         assert row["render_ms_median"] > 0 and row["deformation_ms"] >= 0
+
+
+def test_threads_reach_each_evaluation(
+    tiny_run: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    output = tmp_path / "rerender.json"
+    argv = ["rerender.py", str(tiny_run), "--repeats", "1", "--output", str(output)]
+    monkeypatch.setattr(sys, "argv", [*argv, "--threads", "1"])
+    rerender.main()
+    result = json.loads(output.read_text())
+    assert result["machine"]["threads"] == 1
+    assert [row["cpu_threads"] for row in result["results"]] == [1]
+    monkeypatch.setattr(sys, "argv", [*argv, "--threads", "0"])
+    with pytest.raises(SystemExit, match="--threads must be ≥ 1"):
+        rerender.main()
