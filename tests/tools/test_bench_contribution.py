@@ -1,0 +1,43 @@
+"""benchmarks/bench_contribution.py: times renders with and without the contribution
+measure, for training steps and for evaluation."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+ROOT = Path(__file__).parents[2]
+spec = importlib.util.spec_from_file_location(
+    "bench_contribution", ROOT / "benchmarks" / "bench_contribution.py"
+)
+assert spec is not None and spec.loader is not None
+bench = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(bench)
+
+
+def test_both_renders_are_timed_for_each_run(
+    tiny_run: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    output = tmp_path / "contribution.json"
+    argv = ["bench_contribution.py", str(tiny_run), "--repeats", "2", "--views", "2"]
+    monkeypatch.setattr(sys, "argv", [*argv, "--threads", "1", "--output", str(output)])
+    threads = torch.get_num_threads()
+    try:
+        bench.main()
+    finally:
+        torch.set_num_threads(threads)  # the rest of the session keeps its threads
+    result = json.loads(output.read_text())
+    assert result["machine"]["threads"] == 1
+    [row] = result["results"]
+    assert row["run"] == str(tiny_run) and row["views"] == 2
+    for name in ("train_step", "forward"):
+        cell = row[name]
+        assert cell["with_contribution_ms"] > 0 and cell["without_ms"] > 0
+        assert cell["saving"] == pytest.approx(
+            1 - cell["without_ms"] / cell["with_contribution_ms"]
+        )
