@@ -112,6 +112,35 @@ def test_otherwise_no_training_step_measures_importance(
     assert bool(torch.isinf(trainer.densify_state.importance).all())
 
 
+class AlwaysMeasures:
+    """Wraps a renderer and measures contribution on every call, as all did before."""
+
+    def __init__(self, inner: Any) -> None:
+        self.inner = inner
+
+    def __call__(self, gaussians: Any, camera: Any, background: Any, **_: Any) -> Any:
+        return self.inner(gaussians, camera, background, contribution=True)
+
+
+def test_not_measuring_contribution_changes_no_training_step(tmp_path: Path) -> None:
+    """Training steps skip the measure when nothing reads it: the model after several
+    refinements is bit for bit the one trained with every render measuring."""
+    densify = dataclasses.replace(tiny_config().densify, refine_start=0, refine_every=4)
+    states = []
+    for name, measure_always in (("skips", False), ("measures", True)):
+        trainer = tiny_trainer(tmp_path / name, densify=densify, max_iters=16)
+        if measure_always:
+            trainer.renderer = AlwaysMeasures(trainer.renderer)
+        for step in range(trainer.config.max_iters):
+            trainer.train_step(step)
+            trainer.step = step + 1
+        states.append(trainer.model.state_dict())
+    skips, measures = states
+    assert skips.keys() == measures.keys()
+    for key, value in skips.items():
+        assert torch.equal(value, measures[key]), key
+
+
 def test_a_run_too_short_to_densify_says_so(tmp_path: Path) -> None:
     def warning(max_iters: int) -> str | None:
         return Trainer(tiny_config(max_iters=max_iters), tmp_path, NullWriter()).schedule_warning()
