@@ -1,0 +1,43 @@
+"""benchmarks/work_counts.py: the counted pairs are the pairs the renderer bins."""
+
+from __future__ import annotations
+
+import importlib.util
+import statistics
+from pathlib import Path
+
+import torch
+
+from dyngs.renderers import cpu_reference
+from dyngs.tools.common import load_run
+
+ROOT = Path(__file__).parents[2]
+spec = importlib.util.spec_from_file_location("work_counts", ROOT / "benchmarks" / "work_counts.py")
+assert spec is not None and spec.loader is not None
+work_counts = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(work_counts)
+
+
+def test_counts_match_the_renderers_binning(tiny_run: Path) -> None:
+    run = load_run(tiny_run)
+    row = work_counts.count_run(run, "test")
+    renderer = run.renderer
+    assert isinstance(renderer, cpu_reference.CpuReferenceRenderer)
+    binned, pixels, visible = [], [], []
+    with torch.no_grad():
+        for view in run.data.views("test"):
+            gaussians = run.model.at(view.time, run.sh_degree, deform=run.deform)
+            screen = cpu_reference.project(gaussians, view.camera, renderer.guards)
+            w, h = view.camera.width, view.camera.height
+            tile = renderer.config.tile_size or cpu_reference.choose_tile_size(screen, w, h)
+            bins = cpu_reference._bin(screen, w, h, tile)
+            binned.append(int(bins.tile_count.sum()))
+            pixels.append(int(bins.tile_count.sum()) * tile * tile)
+            visible.append(int(screen.visible.sum()))
+    assert row["views"] == len(binned) > 0
+    assert row["tile_pairs"] == statistics.mean(binned) > 0
+    assert row["pixel_pairs"] == statistics.mean(pixels)
+    assert row["visible"] == statistics.mean(visible)
+    assert row["gaussians"] == len(run.model.canonical)
+    expected_deformed = int(run.model.dynamic.sum()) if run.deform else 0
+    assert row["deformed"] == expected_deformed
