@@ -186,7 +186,9 @@ def accumulate(
         state.count += seen.to(state.count.dtype)
         radius = out.radii.max(dim=-1).values.to(state.max_radius.dtype)
         state.max_radius.copy_(torch.maximum(state.max_radius, torch.where(seen, radius, 0)))
-        if out.contribution is None:  # a renderer that cannot measure it never prunes by it
+        if out.contribution is None:
+            # Not measured (not asked for, or the renderer cannot): never prune by it. When
+            # the window's views decide, `measure_importance` replaces it before refining.
             state.importance.fill_(math.inf)
         else:
             share = out.contribution.to(state.importance.dtype)
