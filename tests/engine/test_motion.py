@@ -127,7 +127,8 @@ def test_a_static_gaussian_where_the_field_moves_becomes_dynamic() -> None:
     revisit(model, MotionConfig(), times, 0.02, torch.zeros(2, dtype=torch.bool))
     assert model.dynamic.tolist() == [False, True]
     # It moves from now on, about the place where it stood still.
-    drawn = torch.stack([model.at(t, 0).means for t in times])
+    with torch.no_grad():
+        drawn = torch.stack([model.at(t, 0).means for t in times])
     assert torch.allclose(drawn.mean(0), before, atol=1e-6)
     assert float((drawn[1, 1] - drawn[0, 1]).norm()) == pytest.approx(1.0)
 
