@@ -33,6 +33,7 @@ from dyngs.engine.densify import (
     reset_opacity_logits,
 )
 from dyngs.engine.evaluate import evaluate
+from dyngs.engine.interrupt import deferred_interrupt
 from dyngs.engine.motion import FixedCameraMotion, model_bytes, revisit, sample_times
 from dyngs.engine.optim import build_optimizer, replace_params, set_learning_rates
 from dyngs.engine.writer import Writer
@@ -494,7 +495,10 @@ class Trainer:
             TimeRemainingColumn(),
         )
         info = ""
-        with Progress(*columns, console=self.console, transient=False) as progress:
+        with (
+            deferred_interrupt() as interrupted,
+            Progress(*columns, console=self.console, transient=False) as progress,
+        ):
             task = progress.add_task("train", total=cfg.max_iters, completed=self.step, info=info)
             window_start, window_steps = time.perf_counter(), 0
             try:
@@ -518,6 +522,8 @@ class Trainer:
                     if cfg.checkpoint_every > 0 and self.step % cfg.checkpoint_every == 0:
                         self.save()
                     progress.update(task, completed=self.step, info=info)
+                    if interrupted():  # Ctrl-C during the step: stop now that it is whole
+                        raise KeyboardInterrupt
             except KeyboardInterrupt:
                 self.save()
                 self.writer.flush()
