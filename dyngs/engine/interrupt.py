@@ -16,10 +16,11 @@ def deferred_interrupt() -> Iterator[Callable[[], bool]]:
     statistics then all describe the same step when the checkpoint is written. A second
     SIGINT raises KeyboardInterrupt at once, for a step that hangs.
 
-    Python raises KeyboardInterrupt wherever the main thread happens to be. Inside a
-    finalizer (a `__del__`, a weakref callback) it is printed and dropped, and training
-    goes on; a CI run of the Ctrl-C test on a loaded machine once trained on after the
-    signal, most likely so. A flag cannot be dropped.
+    Python raises KeyboardInterrupt wherever the main thread happens to be: half-way
+    through an optimizer step, or through a densification that has replaced some
+    parameters and not yet their optimizer state, and the checkpoint written on the way
+    out would hold that half-done step. (Raised inside a finalizer, it would even be
+    printed and dropped.)
 
     A SIGINT that was ignored (a job started in the background by a non-interactive
     shell) stays ignored. Outside the main thread no handler can be set, and nothing

@@ -171,10 +171,18 @@ def test_sigkill_at_a_random_step_then_resume_equals_an_uninterrupted_run(tmp_pa
         assert str(a[key]) == str(b[key])
 
 
+def _default_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def test_ctrl_c_saves_a_checkpoint_and_exits_cleanly(tmp_path: Path) -> None:
     run = tmp_path / "interrupted"
+    # The run gets SIGINT's default disposition, as from a terminal, even when this test
+    # run inherited it ignored (started in the background by a non-interactive shell).
+    # Python keeps an ignored SIGINT ignored, and so does dyngs-train.
     process = subprocess.Popen(_train_command(run, 10_000), stdout=subprocess.PIPE,
-                               stderr=subprocess.STDOUT, text=True)  # fmt: skip
+                               stderr=subprocess.STDOUT, text=True,
+                               preexec_fn=_default_sigint)  # fmt: skip
     try:
         _wait_for_step(process, run, 4)
         process.send_signal(signal.SIGINT)
