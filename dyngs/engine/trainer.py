@@ -149,6 +149,7 @@ class Trainer:
         self.nonfinite_culled = torch.zeros((), dtype=torch.long, device=self.device)
         self.train_seconds = 0.0
         self.deformation_seconds = 0.0
+        self.importance_seconds = 0.0  # measuring importance before refinements
         self.skipped_steps = 0
         self.bad_streak = 0
 
@@ -414,7 +415,9 @@ class Trainer:
         self.consider_sh_degree(step)
         if is_refine_step(cfg.densify, step, cfg.max_iters):
             if cfg.densify.prune_importance > 0 and cfg.densify.importance_views > 0:
+                started = time.perf_counter()
                 self.densify_state.importance = self.measure_importance(step)
+                self.importance_seconds += time.perf_counter() - started
             plan = plan_refinement(
                 cfg.densify,
                 self.model,
@@ -552,6 +555,7 @@ class Trainer:
         for key, amount in capacity.items():
             w.scalar(f"train/{key}", amount, self.step)
         w.scalar("train/skipped_steps", self.skipped_steps, self.step)
+        w.scalar("train/importance_seconds", self.importance_seconds, self.step)
         w.scalar("train/iterations_per_second", rate, self.step)
         for group in self.optimizer.param_groups:
             w.scalar(f"learning_rate/{group['name']}", group["lr"], self.step)
@@ -593,6 +597,7 @@ class Trainer:
             **self.capacity(),
             "static_scene": self.config.motion.separate and not self.model.any_dynamic(),
             "train_seconds": self.train_seconds,
+            "importance_seconds": self.importance_seconds,
             "iterations": self.step,
             "skipped_steps": self.skipped_steps,
             "renderer": renderer_name(self.config.renderer),
@@ -618,6 +623,7 @@ class Trainer:
                 "active_sh": self.active_sh,
                 "train_seconds": self.train_seconds,
                 "deformation_seconds": self.deformation_seconds,
+                "importance_seconds": self.importance_seconds,
                 "skipped_steps": self.skipped_steps,
                 "model": self.model.state_dict(),
                 "optimizer": self.optimizer.state_dict(),
@@ -644,4 +650,5 @@ class Trainer:
         self.train_seconds = float(state["train_seconds"])
         self.skipped_steps = int(state.get("skipped_steps", 0))
         self.deformation_seconds = float(state.get("deformation_seconds", 0.0))
+        self.importance_seconds = float(state.get("importance_seconds", 0.0))
         self._arap = None

@@ -207,3 +207,22 @@ def test_unreadable_run_files_say_which(tmp_path: Path, name: str) -> None:
     path.write_bytes(b"\x00garbage")
     with pytest.raises(ConfigError, match=str(path)):
         (load_config if name == "config" else load_checkpoint)(path)
+
+
+@pytest.mark.parametrize("views", [0, 100])
+def test_the_importance_pass_is_timed_and_survives_resume(tmp_path: Path, views: int) -> None:
+    densify = dataclasses.replace(
+        tiny_config().densify, refine_start=0, refine_every=4, importance_views=views
+    )
+    trainer = tiny_trainer(tmp_path, densify=densify, max_iters=9)
+    for step in range(trainer.config.max_iters):
+        trainer.train_step(step)
+        trainer.step = step + 1
+    spent = trainer.importance_seconds
+    # Two refinements (steps 4 and 8) measured, or none with the drawn views deciding.
+    assert (spent > 0) == (views > 0)
+    assert trainer.evaluate()["importance_seconds"] == spent  # reported in metrics.json
+    trainer.save()
+    resumed = tiny_trainer(tmp_path, densify=densify, max_iters=9)
+    resumed.load(trainer.checkpoint_path())
+    assert resumed.importance_seconds == spent
