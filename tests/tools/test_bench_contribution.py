@@ -3,7 +3,6 @@ measure, for training steps and for evaluation."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import sys
 from pathlib import Path
@@ -11,13 +10,9 @@ from pathlib import Path
 import pytest
 import torch
 
-ROOT = Path(__file__).parents[2]
-spec = importlib.util.spec_from_file_location(
-    "bench_contribution", ROOT / "benchmarks" / "bench_contribution.py"
-)
-assert spec is not None and spec.loader is not None
-bench = importlib.util.module_from_spec(spec)
-spec.loader.exec_module(bench)
+from tests.tools.conftest import load_benchmark
+
+bench = load_benchmark("bench_contribution")
 
 
 def test_both_renders_are_timed_for_each_run(

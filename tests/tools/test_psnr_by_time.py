@@ -2,17 +2,14 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
 import pytest
 
-SCRIPT = Path(__file__).parents[2] / "benchmarks" / "psnr_by_time.py"
-spec = importlib.util.spec_from_file_location("psnr_by_time", SCRIPT)
-assert spec is not None and spec.loader is not None
-psnr_by_time = importlib.util.module_from_spec(spec)
-spec.loader.exec_module(psnr_by_time)
+from tests.tools.conftest import load_benchmark
+
+psnr_by_time = load_benchmark("psnr_by_time")
 
 
 def test_frames_are_averaged_within_their_span_and_t_1_is_in_the_last() -> None:

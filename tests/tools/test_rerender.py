@@ -2,18 +2,16 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import sys
 from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).parents[2]
-spec = importlib.util.spec_from_file_location("rerender", ROOT / "benchmarks" / "rerender.py")
-assert spec is not None and spec.loader is not None
-rerender = importlib.util.module_from_spec(spec)
-spec.loader.exec_module(rerender)
+from tests.tools.conftest import BENCHMARKS, load_benchmark
+
+ROOT = BENCHMARKS.parent
+rerender = load_benchmark("rerender")
 
 
 def test_code_versions_are_parsed_and_bad_ones_refused(tmp_path: Path) -> None:

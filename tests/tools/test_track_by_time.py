@@ -3,7 +3,6 @@ training, and the command line writes its table."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import sys
 from pathlib import Path
@@ -13,13 +12,9 @@ import torch
 
 from dyngs.engine.evaluate import evaluate
 from tests.engine.helpers import tiny_trainer
-from tests.tools.conftest import TINY_FLAGS
+from tests.tools.conftest import TINY_FLAGS, load_benchmark
 
-SCRIPT = Path(__file__).parents[2] / "benchmarks" / "track_by_time.py"
-spec = importlib.util.spec_from_file_location("track_by_time", SCRIPT)
-assert spec is not None and spec.loader is not None
-track_by_time = importlib.util.module_from_spec(spec)
-spec.loader.exec_module(track_by_time)
+track_by_time = load_benchmark("track_by_time")
 
 
 def test_one_span_is_the_mean_psnr_of_the_training_views(tmp_path: Path) -> None:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import statistics
 from pathlib import Path
 
@@ -10,12 +9,9 @@ import torch
 
 from dyngs.renderers import cpu_reference
 from dyngs.tools.common import load_run
+from tests.tools.conftest import load_benchmark
 
-ROOT = Path(__file__).parents[2]
-spec = importlib.util.spec_from_file_location("work_counts", ROOT / "benchmarks" / "work_counts.py")
-assert spec is not None and spec.loader is not None
-work_counts = importlib.util.module_from_spec(spec)
-spec.loader.exec_module(work_counts)
+work_counts = load_benchmark("work_counts")
 
 
 def test_counts_match_the_renderers_binning(tiny_run: Path) -> None:
