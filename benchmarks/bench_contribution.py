@@ -16,14 +16,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import statistics
 import time
 from pathlib import Path
 
 import torch
 
-from dyngs.tools.common import LoadedRun, load_run
+from dyngs.tools.common import LoadedRun, load_run, machine_info
 
 
 def render_seconds(run: LoadedRun, view, contribution: bool, backward: bool) -> float:  # type: ignore[no-untyped-def]
@@ -89,12 +88,7 @@ def main() -> None:
                 f"{folder} {name}: {cell['with_contribution_ms']:.1f} ms with the measure, "
                 f"{cell['without_ms']:.1f} ms without ({100 * cell['saving']:.0f} % saved)"
             )
-    machine = {
-        "platform": platform.platform(),
-        "processor": platform.processor(),
-        "torch": torch.__version__,
-        "threads": torch.get_num_threads(),
-    }
+    machine = machine_info()
     args.output.parent.mkdir(parents=True, exist_ok=True)
     args.output.write_text(json.dumps({"machine": machine, "results": rows}, indent=2) + "\n")
     print(f"wrote {args.output}")

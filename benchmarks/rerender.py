@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import statistics
 import subprocess
 import sys
@@ -29,7 +28,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-import torch
+from dyngs.tools.common import machine_info
 
 
 def with_tile_size(run: Path, tile_size: str, scratch: Path) -> Path:
@@ -151,12 +150,7 @@ def main() -> None:
             f"(spread {row['render_ms_spread'][0]:.1f}-{row['render_ms_spread'][1]:.1f}), "
             f"deformation {row['deformation_ms']:.2f} ms"
         )
-    machine = {
-        "platform": platform.platform(),
-        "processor": platform.processor(),
-        "torch": torch.__version__,
-        "threads": args.threads or torch.get_num_threads(),
-    }
+    machine = machine_info(args.threads)
     args.output.parent.mkdir(parents=True, exist_ok=True)
     args.output.write_text(json.dumps({"machine": machine, "results": rows}, indent=2) + "\n")
     print(f"wrote {args.output}")

@@ -7,6 +7,7 @@ those alone `load_run` rebuilds the scene, the model at its last step and the re
 from __future__ import annotations
 
 import dataclasses
+import platform
 import sys
 import warnings
 from collections.abc import Callable, Iterator
@@ -30,6 +31,18 @@ from dyngs.renderers import CpuReferenceConfig, CudaTileConfig, renderer_name
 from dyngs.renderers.base import Renderer
 
 RendererChoice = Literal["run", "cpu-reference", "cuda-tile"]
+
+
+def machine_info(threads: int | None = None) -> dict[str, Any]:
+    """What a benchmark ran on, for its results file: platform, processor (the machine
+    type where the OS names none), PyTorch version and CPU threads (`threads`, else
+    PyTorch's current count)."""
+    return {
+        "platform": platform.platform(),
+        "processor": platform.processor() or platform.machine(),
+        "torch": torch.__version__,
+        "threads": threads or torch.get_num_threads(),
+    }
 
 
 @contextmanager

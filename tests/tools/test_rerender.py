@@ -7,7 +7,9 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 
+from dyngs.tools.common import machine_info
 from tests.tools.conftest import BENCHMARKS, load_benchmark
 
 ROOT = BENCHMARKS.parent
@@ -51,3 +53,9 @@ def test_threads_reach_each_evaluation(
     monkeypatch.setattr(sys, "argv", [*argv, "--threads", "0"])
     with pytest.raises(SystemExit, match="--threads must be ≥ 1"):
         rerender.main()
+
+
+def test_machine_info_names_the_processor_and_the_threads() -> None:
+    info = machine_info(3)
+    assert info["threads"] == 3 and info["processor"] and info["torch"] and info["platform"]
+    assert machine_info()["threads"] == torch.get_num_threads()
