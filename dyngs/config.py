@@ -47,6 +47,15 @@ class LossConfig:
     """Restrict the photometric loss to the dataset's masks (alpha or segmentation). Off by
     default: RGBA images are composited over the background, which must be learned too,
     or nothing stops floaters in front of it."""
+    change_weight: float = 0.0
+    """Fixed-camera captures: a pixel that differs from its camera's temporal median by more
+    than --motion.pixel-change (something that is not usually there, such as a moving
+    object) counts 1 + this many times in the photometric loss: DyNeRF's ray importance
+    sampling by the global median (ISG; Li et al. 2022, Neural 3D Video Synthesis) as a
+    loss weight, since a rasterizer draws every pixel anyway. Small moving objects are
+    otherwise a few pixels in thousands: 10 makes every seed of mujoco-collision find its
+    spheres, but costs 0.9 dB on close_proximity, whose spheres are found without it
+    (docs/TRAINING.md). No effect on other captures."""
     plane_tv: float = 1.2e-3
     """Total variation of the spatial feature planes (K-Planes)."""
     time_smoothness: float = 6e-2
@@ -57,6 +66,17 @@ class LossConfig:
     """Local rigidity: neighbour distances kept between the current and a random time."""
     arap_neighbors: int = 8
     """Canonical nearest neighbours per Gaussian for the rigidity term."""
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.dssim <= 1.0:
+            raise ConfigError(f"--losses.dssim must be in [0, 1], got {self.dssim}")
+        for name in ("change_weight", "plane_tv", "time_smoothness", "time_l1", "arap"):
+            value = getattr(self, name)
+            if not value >= 0.0:  # NaN fails too
+                flag = name.replace("_", "-")
+                raise ConfigError(f"--losses.{flag} must be ≥ 0, got {value}")
+        if self.arap_neighbors < 1:
+            raise ConfigError(f"--losses.arap-neighbors must be ≥ 1, got {self.arap_neighbors}")
 
 
 @dataclass(frozen=True)

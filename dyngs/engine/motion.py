@@ -32,6 +32,7 @@ from jaxtyping import Bool, Float
 from torch import Tensor
 
 from dyngs.datamanagers.base import Split
+from dyngs.datamanagers.fixed_cameras import FixedCameras
 from dyngs.errors import ConfigError
 from dyngs.geometry import normalize_quaternion
 from dyngs.model import DynamicGaussians
@@ -185,33 +186,8 @@ def revisit(
     return int(demote.sum()), int(promote.sum())
 
 
-def fixed_camera_groups(split: Split, min_times: int = 3) -> list[list[int]]:
-    """Views taken by the same camera at different times (≥ `min_times` of them)."""
-    groups: dict[tuple[float, ...], list[int]] = {}
-    for i, camera in enumerate(split.cameras):
-        key = (
-            *(round(float(v), 5) for v in camera.world_to_camera[:3].reshape(-1)),
-            round(camera.fx, 3),
-            round(camera.fy, 3),
-            round(camera.cx, 3),
-            round(camera.cy, 3),
-            camera.width,
-            camera.height,
-        )
-        groups.setdefault(key, []).append(i)
-    return [
-        views
-        for views in groups.values()
-        if len({float(split.times[i]) for i in views}) >= min_times
-    ]
-
-
-MEDIAN_FRAMES = 64
-"""Frames per fixed camera that the temporal median is taken over (evenly spread)."""
-
-
 def pixel_motion_maps(
-    split: Split, groups: list[list[int]], early: float
+    split: Split, fixed: FixedCameras, early: float
 ) -> list[Float[Tensor, "H W"]]:
     """Per fixed camera, how far each pixel in the early frames (t ≤ `early`, or the
     earliest) is from what it shows most of the time (its temporal median), in [0, 1].
@@ -221,15 +197,11 @@ def pixel_motion_maps(
     that a moving object only passes in front of matches its median and stays static.
     """
     maps = []
-    for views in groups:
-        order = sorted(views, key=lambda i: float(split.times[i]))
+    for order, median in zip(fixed.views, fixed.medians, strict=True):
         first = float(split.times[order[0]])
         reference = [i for i in order if float(split.times[i]) <= max(early, first)]
-        picks = torch.linspace(0, len(order) - 1, min(len(order), MEDIAN_FRAMES)).round().long()
-        stack = torch.stack([split.images[order[int(k)]] for k in picks])
-        median = stack.median(dim=0).values.float() / 255.0
         start = torch.stack([split.images[i] for i in reference]).float().mean(0) / 255.0
-        maps.append((start - median).abs().amax(-1))
+        maps.append((start - median.float() / 255.0).abs().amax(-1))
     return maps
 
 
@@ -244,16 +216,18 @@ class FixedCameraMotion:
     maps: list[Float[Tensor, "H W"]]
 
     @classmethod
-    def of(cls, split: Split, early: float = 0.0) -> FixedCameraMotion | None:
-        """None when the split has no fixed cameras."""
-        groups = fixed_camera_groups(split)
-        if not groups:
+    def of(
+        cls, split: Split, early: float = 0.0, fixed: FixedCameras | None = None
+    ) -> FixedCameraMotion | None:
+        """None when the split has no fixed cameras. `fixed`: the split's, when already read."""
+        fixed = fixed or FixedCameras.of(split)
+        if fixed is None:
             return None
         maps = [
             torch.nn.functional.max_pool2d(motion_map[None, None], 3, 1, 1)[0, 0]
-            for motion_map in pixel_motion_maps(split, groups, early)
+            for motion_map in pixel_motion_maps(split, fixed, early)
         ]
-        return cls([split.cameras[views[0]] for views in groups], maps)
+        return cls(fixed.cameras, maps)
 
     @torch.no_grad()
     def evidence(self, means: Float[Tensor, "N 3"], config: MotionConfig) -> Bool[Tensor, " N"]:

@@ -20,6 +20,7 @@ from dyngs.capacity import pixel_footprint, resolve_capacity
 from dyngs.config import LossConfig, TrainConfig
 from dyngs.datamanagers.base import SceneData
 from dyngs.datamanagers.datamanager import DataManager, TrainBatch, load_scene
+from dyngs.datamanagers.fixed_cameras import FixedCameras
 from dyngs.engine.checkpoint import load_checkpoint, save_checkpoint
 from dyngs.engine.densify import (
     DensifyState,
@@ -248,8 +249,8 @@ class Trainer:
         )
         self.nonfinite_culled += out.num_nonfinite.to(self.nonfinite_culled.device)
 
-        mask = batch.mask if cfg.losses.masked else None
-        terms = {"photometric": photometric(out.rgb, batch.image, cfg.losses.dssim, mask)}
+        weights = self.loss_weights(batch)
+        terms = {"photometric": photometric(out.rgb, batch.image, cfg.losses.dssim, weights)}
         if deform:
             terms |= regularization(cfg.losses, self.model.field.planes())
             if cfg.losses.arap > 0:
@@ -322,10 +323,30 @@ class Trainer:
     # ------------------------------------------------------- static / dynamic
 
     @cached_property
+    def fixed_cameras(self) -> FixedCameras | None:
+        """The training views' fixed cameras and their temporal medians (None without any):
+        they depend on the images only, so they are read once, when first asked for."""
+        return FixedCameras.of(self.scene.train)
+
+    @cached_property
     def fixed_motion(self) -> FixedCameraMotion | None:
-        """What the fixed cameras see move (None without any): it depends on the images
-        only, so it is read from them once, at the first revisit that asks."""
-        return FixedCameraMotion.of(self.scene.train)
+        """What the fixed cameras see move (None without any)."""
+        fixed = self.fixed_cameras
+        return None if fixed is None else FixedCameraMotion.of(self.scene.train, fixed=fixed)
+
+    def loss_weights(self, batch: TrainBatch) -> Tensor | None:
+        """Per-pixel weights of the photometric loss: the dataset's mask with
+        `--losses.masked`, times 1 + `--losses.change-weight` where a fixed camera sees a
+        pixel differ from its usual content."""
+        cfg = self.config
+        mask = batch.mask if cfg.losses.masked else None
+        if cfg.losses.change_weight == 0 or self.fixed_cameras is None:
+            return mask
+        changed = self.fixed_cameras.changed(batch.index, batch.image, cfg.motion.pixel_change)
+        if changed is None:
+            return mask
+        weights = (1 + cfg.losses.change_weight * changed.to(batch.image.dtype))[..., None]
+        return weights if mask is None else weights * mask
 
     def is_motion_step(self, step: int) -> bool:
         """Revisit the split every `motion.every` steps once training spans all times."""
@@ -490,6 +511,14 @@ class Trainer:
         warning = self.schedule_warning()
         if warning is not None and self.step < cfg.max_iters:
             self.console.print(warning, highlight=False, markup=False)
+        if cfg.losses.change_weight > 0 and self.fixed_cameras is not None:
+            self.console.print(
+                f"[loss] {len(self.fixed_cameras.views)} fixed cameras: pixels that differ from "
+                f"their camera's temporal median count {1 + cfg.losses.change_weight:g}× in the "
+                "photometric loss",
+                highlight=False,
+                markup=False,
+            )
         columns = (
             TextColumn("[bold]train"),
             BarColumn(),

@@ -9,12 +9,12 @@ import pytest
 import torch
 
 from dyngs.datamanagers.datamanager import DataConfig, load_scene
+from dyngs.datamanagers.fixed_cameras import fixed_camera_groups
 from dyngs.datamanagers.procedural import ProceduralSceneConfig, demo_path, is_on_dynamic_object
 from dyngs.engine.densify import DensifyConfig, apply_topology, plan_refinement
 from dyngs.engine.motion import (
     FixedCameraMotion,
     MotionConfig,
-    fixed_camera_groups,
     measure_motion,
     model_bytes,
     revisit,

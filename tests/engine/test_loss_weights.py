@@ -1,0 +1,83 @@
+"""Change-weighted photometric loss: on fixed cameras, pixels that show something that is
+not usually there (a moving object) weigh 1 + `--losses.change-weight`."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any
+
+import pytest
+import torch
+
+from dyngs.config import LossConfig
+from dyngs.datamanagers.procedural import ProceduralSceneConfig, demo_path
+from dyngs.engine import trainer as trainer_module
+from dyngs.engine.trainer import Trainer
+from dyngs.engine.writer import NullWriter
+from tests.engine.helpers import tiny_config
+
+RIG = ProceduralSceneConfig(resolution=48, num_times=9, fixed_cameras=4, num_test=2, num_val=0)
+
+
+def _rig_trainer(tmp_path: Path, **losses: Any) -> Trainer:
+    config = tiny_config(data=str(demo_path(RIG)), losses=LossConfig(**losses))
+    return Trainer(config, tmp_path, NullWriter())
+
+
+def test_changed_pixels_weigh_one_plus_the_change_weight(tmp_path: Path) -> None:
+    trainer = _rig_trainer(tmp_path, change_weight=4.0)
+    fixed = trainer.fixed_cameras
+    assert fixed is not None
+    heavy = 0
+    for _ in range(len(trainer.scene.train)):
+        batch = trainer.data.next_train()
+        weights = trainer.loss_weights(batch)
+        changed = fixed.changed(batch.index, batch.image, trainer.config.motion.pixel_change)
+        assert weights is not None and changed is not None
+        assert weights.shape == (*batch.image.shape[:2], 1)
+        assert torch.equal(weights[..., 0], torch.where(changed, 5.0, 1.0))
+        heavy += int(changed.sum())
+    assert heavy > 0
+
+
+def test_a_training_step_passes_the_weights_to_the_photometric_loss(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    trainer = _rig_trainer(tmp_path, change_weight=4.0)
+    seen: list[torch.Tensor | None] = []
+
+    def spy(pred: torch.Tensor, target: torch.Tensor, dssim: float, mask: Any = None) -> Any:
+        seen.append(mask)
+        return photometric(pred, target, dssim, mask)
+
+    photometric = trainer_module.photometric
+    monkeypatch.setattr(trainer_module, "photometric", spy)
+    stats = trainer.train_step(0)
+    [mask] = seen
+    expected = trainer.loss_weights(stats.batch)
+    assert mask is not None and expected is not None and torch.equal(mask, expected)
+
+
+def test_the_weights_multiply_the_datasets_mask(tmp_path: Path) -> None:
+    trainer = _rig_trainer(tmp_path, change_weight=2.0, masked=True)
+    batch = trainer.data.next_train()
+    half = torch.full((*batch.image.shape[:2], 1), 0.5)
+    unmasked = trainer.loss_weights(dataclasses.replace(batch, mask=torch.ones_like(half)))
+    weights = trainer.loss_weights(dataclasses.replace(batch, mask=half))
+    assert unmasked is not None and weights is not None
+    assert torch.equal(weights, unmasked * 0.5)
+
+
+def test_without_a_change_weight_the_medians_are_never_read(tmp_path: Path) -> None:
+    trainer = _rig_trainer(tmp_path, change_weight=0.0)
+    batch = trainer.data.next_train()
+    assert trainer.loss_weights(batch) is None
+    trainer.train_step(0)
+    assert "fixed_cameras" not in vars(trainer)  # cached_property: never computed
+
+
+def test_moving_cameras_leave_the_loss_unweighted(tmp_path: Path) -> None:
+    trainer = Trainer(tiny_config(losses=LossConfig(change_weight=4.0)), tmp_path, NullWriter())
+    assert trainer.fixed_cameras is None
+    assert trainer.loss_weights(trainer.data.next_train()) is None
