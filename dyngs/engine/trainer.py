@@ -348,6 +348,19 @@ class Trainer:
         weights = (1 + cfg.losses.change_weight * changed.to(batch.image.dtype))[..., None]
         return weights if mask is None else weights * mask
 
+    def change_weight_note(self) -> str:
+        """What `--losses.change-weight` does on this capture, for the log."""
+        weight = self.config.losses.change_weight
+        if self.fixed_cameras is None:
+            return (
+                f"warning: --losses.change-weight {weight:g} has no effect: no camera of "
+                f"{self.scene.name} stays put at three or more times"
+            )
+        return (
+            f"[loss] {len(self.fixed_cameras.views)} fixed cameras: pixels that differ from "
+            f"their camera's temporal median count {1 + weight:g}× in the photometric loss"
+        )
+
     def is_motion_step(self, step: int) -> bool:
         """Revisit the split every `motion.every` steps once training spans all times."""
         cfg = self.config
@@ -511,14 +524,8 @@ class Trainer:
         warning = self.schedule_warning()
         if warning is not None and self.step < cfg.max_iters:
             self.console.print(warning, highlight=False, markup=False)
-        if cfg.losses.change_weight > 0 and self.fixed_cameras is not None:
-            self.console.print(
-                f"[loss] {len(self.fixed_cameras.views)} fixed cameras: pixels that differ from "
-                f"their camera's temporal median count {1 + cfg.losses.change_weight:g}× in the "
-                "photometric loss",
-                highlight=False,
-                markup=False,
-            )
+        if cfg.losses.change_weight > 0 and self.step < cfg.max_iters:
+            self.console.print(self.change_weight_note(), highlight=False, markup=False)
         columns = (
             TextColumn("[bold]train"),
             BarColumn(),

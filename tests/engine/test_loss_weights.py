@@ -77,7 +77,18 @@ def test_without_a_change_weight_the_medians_are_never_read(tmp_path: Path) -> N
     assert "fixed_cameras" not in vars(trainer)  # cached_property: never computed
 
 
-def test_moving_cameras_leave_the_loss_unweighted(tmp_path: Path) -> None:
+def test_moving_cameras_leave_the_loss_unweighted_and_the_run_says_so(tmp_path: Path) -> None:
     trainer = Trainer(tiny_config(losses=LossConfig(change_weight=4.0)), tmp_path, NullWriter())
     assert trainer.fixed_cameras is None
     assert trainer.loss_weights(trainer.data.next_train()) is None
+    assert trainer.change_weight_note().startswith(
+        "warning: --losses.change-weight 4 has no effect"
+    )
+
+
+def test_a_rig_run_says_how_much_changed_pixels_count(tmp_path: Path) -> None:
+    note = _rig_trainer(tmp_path, change_weight=4.0).change_weight_note()
+    assert note == (
+        f"[loss] {RIG.fixed_cameras} fixed cameras: pixels that differ from their camera's "
+        "temporal median count 5× in the photometric loss"
+    )
