@@ -4,7 +4,7 @@ camera's pixels shows most of the time.
 A camera that stays put while time passes sees motion directly: a pixel that differs
 from its temporal median shows something that is not usually there. The static/dynamic
 split (dyngs/engine/motion.py) and the change-weighted photometric loss
-(dyngs/losses/change.py) both read it from here.
+(`Trainer.loss_weights`, `--losses.change-weight`) both read it from here.
 """
 
 from __future__ import annotations
@@ -20,6 +20,12 @@ from dyngs.types import Camera
 
 MEDIAN_FRAMES = 64
 """Frames per fixed camera that the temporal median is taken over (evenly spread)."""
+
+
+def dilate(values: Float[Tensor, "H W"]) -> Float[Tensor, "H W"]:
+    """Each pixel's largest value over itself and its eight neighbours: a point on a
+    moving edge may sit just beside the change."""
+    return torch.nn.functional.max_pool2d(values[None, None], 3, 1, 1)[0, 0]
 
 
 def fixed_camera_groups(split: Split, min_times: int = 3) -> list[list[int]]:
@@ -77,17 +83,20 @@ class FixedCameras:
         """Which fixed camera took view `index` of the split (None: a camera that moves)."""
         return self._camera_of.get(index)
 
-    def changed(
-        self, index: int, image: Float[Tensor, "H W 3"], threshold: float
-    ) -> Bool[Tensor, "H W"] | None:
-        """Pixels of view `index` (`image`, float in [0, 1]) that differ from their
-        camera's median by more than `threshold` in some channel, dilated by one pixel so
-        that the edge of a moving object counts too. None when a moving camera took it."""
-        camera = self.camera_of(index)
-        if camera is None:
-            return None
+    def distance(self, camera: int, image: Float[Tensor, "H W 3"]) -> Float[Tensor, "H W"]:
+        """How far each pixel of `image` (float in [0, 1], as fixed camera `camera` sees
+        it) is from that camera's median: the largest difference over the channels."""
         if image.device not in self._on_device:
             self._on_device[image.device] = [m.to(image.device) for m in self.medians]
         median = self._on_device[image.device][camera].to(image.dtype) / 255.0
-        change = ((image - median).abs().amax(-1) > threshold).to(image.dtype)
-        return torch.nn.functional.max_pool2d(change[None, None], 3, 1, 1)[0, 0] > 0
+        return (image - median).abs().amax(-1)
+
+    def changed(
+        self, index: int, image: Float[Tensor, "H W 3"], threshold: float
+    ) -> Bool[Tensor, "H W"] | None:
+        """Pixels of view `index` (`image`) whose `distance`, dilated by one pixel, exceeds
+        `threshold`. None when a moving camera took the view."""
+        camera = self.camera_of(index)
+        if camera is None:
+            return None
+        return dilate(self.distance(camera, image)) > threshold

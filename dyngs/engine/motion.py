@@ -32,7 +32,7 @@ from jaxtyping import Bool, Float
 from torch import Tensor
 
 from dyngs.datamanagers.base import Split
-from dyngs.datamanagers.fixed_cameras import FixedCameras
+from dyngs.datamanagers.fixed_cameras import FixedCameras, dilate
 from dyngs.errors import ConfigError
 from dyngs.geometry import normalize_quaternion
 from dyngs.model import DynamicGaussians
@@ -197,11 +197,11 @@ def pixel_motion_maps(
     that a moving object only passes in front of matches its median and stays static.
     """
     maps = []
-    for order, median in zip(fixed.views, fixed.medians, strict=True):
+    for camera, order in enumerate(fixed.views):
         first = float(split.times[order[0]])
         reference = [i for i in order if float(split.times[i]) <= max(early, first)]
         start = torch.stack([split.images[i] for i in reference]).float().mean(0) / 255.0
-        maps.append((start - median.float() / 255.0).abs().amax(-1))
+        maps.append(fixed.distance(camera, start))
     return maps
 
 
@@ -223,10 +223,7 @@ class FixedCameraMotion:
         fixed = fixed or FixedCameras.of(split)
         if fixed is None:
             return None
-        maps = [
-            torch.nn.functional.max_pool2d(motion_map[None, None], 3, 1, 1)[0, 0]
-            for motion_map in pixel_motion_maps(split, fixed, early)
-        ]
+        maps = [dilate(motion_map) for motion_map in pixel_motion_maps(split, fixed, early)]
         return cls(fixed.cameras, maps)
 
     @torch.no_grad()
