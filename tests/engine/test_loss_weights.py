@@ -46,12 +46,12 @@ def test_a_training_step_passes_the_weights_to_the_photometric_loss(
 ) -> None:
     trainer = _rig_trainer(tmp_path, change_weight=4.0)
     seen: list[torch.Tensor | None] = []
+    photometric = trainer_module.photometric
 
     def spy(pred: torch.Tensor, target: torch.Tensor, dssim: float, mask: Any = None) -> Any:
         seen.append(mask)
         return photometric(pred, target, dssim, mask)
 
-    photometric = trainer_module.photometric
     monkeypatch.setattr(trainer_module, "photometric", spy)
     stats = trainer.train_step(0)
     [mask] = seen
