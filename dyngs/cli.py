@@ -8,7 +8,6 @@ FILE (one or more per line, `#` starts a comment); configs/ holds such override 
 
 from __future__ import annotations
 
-import json
 import shlex
 import sys
 import time
@@ -21,10 +20,10 @@ from rich.table import Table
 
 from dyngs.config import TrainConfig
 from dyngs.configio import load_config, save_config
-from dyngs.engine.checkpoint import atomic_write_text
 from dyngs.engine.trainer import CHECKPOINT_NAME, Trainer
 from dyngs.engine.writer import NullWriter, TensorBoardWriter, Writer
 from dyngs.errors import ConfigError
+from dyngs.io import write_json
 from dyngs.methods import method_presets
 from dyngs.tools.common import run_tool
 
@@ -106,7 +105,7 @@ def run_training(
         else:
             save_config(run_dir / "config.json", trainer.config)  # with data-sized values
         metrics = trainer.train()
-        atomic_write_text(run_dir / "metrics.json", json.dumps(metrics, indent=2) + "\n")
+        write_json(run_dir / "metrics.json", metrics)
     finally:
         writer.close()
     console.print(summary_table(metrics))

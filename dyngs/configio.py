@@ -15,6 +15,9 @@ import typing
 from pathlib import Path
 from typing import Any
 
+from dyngs.errors import ConfigError
+from dyngs.io import atomic_write_text
+
 CLASS_KEY = "__class__"
 
 
@@ -83,14 +86,10 @@ def config_from_dict(data: dict[str, Any]) -> Any:
 
 
 def save_config(path: Path, config: Any) -> None:
-    from dyngs.engine.checkpoint import atomic_write_text
-
     atomic_write_text(path, json.dumps(config_to_dict(config), indent=2) + "\n")
 
 
 def load_config(path: Path) -> Any:
-    from dyngs.errors import ConfigError
-
     try:
         data = json.loads(path.read_text())
     except FileNotFoundError:

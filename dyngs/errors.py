@@ -8,3 +8,11 @@ class UserError(Exception):
 
 class ConfigError(UserError):
     """A config value that cannot work (negative iterations, unknown split, …)."""
+
+
+class DatasetError(UserError, ValueError):
+    """Bad input data. The message is one line naming the file and the problem."""
+
+
+class RendererUnavailable(UserError, RuntimeError):
+    """The chosen renderer cannot run on this machine (the message says what is missing)."""

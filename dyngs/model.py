@@ -18,7 +18,7 @@ from torch import Tensor, nn
 from dyngs.fields.base import Field
 from dyngs.fields.heads import DeformationHead, Deltas
 from dyngs.geometry import normalize_quaternion
-from dyngs.losses.arap import knn
+from dyngs.neighbors import knn
 from dyngs.ops import finite_rows
 from dyngs.sh import num_sh_bases, rgb_to_sh0
 from dyngs.types import Gaussians, SceneBox
@@ -47,7 +47,7 @@ class GaussianConfig:
     """Initial scale: mean distance to this many nearest initial points (Kerbl et al. 2023)."""
     max_init_points: int | None = None
     """Initial points beyond this many are subsampled (seeded). None: the data-sized
-    Gaussian budget (dyngs/capacity.py), so that a dense or random cloud never starts a
+    Gaussian budget (dyngs/engine/capacity.py), so that a dense or random cloud never starts a
     scene above what it needs."""
 
 

@@ -16,7 +16,7 @@ from typing import BinaryIO
 import numpy as np
 from jaxtyping import Shaped
 
-from dyngs.datamanagers.base import DatasetError
+from dyngs.errors import DatasetError
 
 _TYPES: dict[str, str] = {
     "char": "i1",

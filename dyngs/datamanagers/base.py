@@ -17,15 +17,11 @@ import torch
 from jaxtyping import Float, UInt8
 from torch import Tensor
 
-from dyngs.errors import UserError
+from dyngs.errors import DatasetError
 from dyngs.types import Camera, SceneBox
 
 HOST_CACHE_BYTES = 1 << 30
 """Default bound on the decoded uint8 images a lazy split keeps in host memory."""
-
-
-class DatasetError(UserError, ValueError):
-    """Bad input data. The message is one line naming the file and the problem."""
 
 
 def capture_folder(path: Path | str, downscale: int) -> Path:

@@ -15,21 +15,14 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
-from dyngs.datamanagers.base import (
-    HOST_CACHE_BYTES,
-    DatasetError,
-    LazyImages,
-    SceneData,
-    Split,
-    image_size,
-)
+from dyngs.datamanagers.base import HOST_CACHE_BYTES, LazyImages, SceneData, Split, image_size
 from dyngs.datamanagers.dnerf import parse_dnerf
 from dyngs.datamanagers.dynerf import parse_dynerf
 from dyngs.datamanagers.nerfies import parse_nerfies
 from dyngs.datamanagers.panoptic import parse_panoptic
 from dyngs.datamanagers.procedural import demo_path
 from dyngs.datamanagers.progress import report
-from dyngs.errors import ConfigError
+from dyngs.errors import ConfigError, DatasetError
 from dyngs.types import Camera
 
 DEMO = "demo"

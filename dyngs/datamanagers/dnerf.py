@@ -25,7 +25,7 @@ import numpy as np
 import torch
 from jaxtyping import Float, UInt8
 
-from dyngs.datamanagers.base import DatasetError, SceneData, Split, capture_folder
+from dyngs.datamanagers.base import SceneData, Split, capture_folder
 from dyngs.datamanagers.cameras import (
     blender_to_world_to_camera,
     check_rigid,
@@ -35,6 +35,7 @@ from dyngs.datamanagers.cameras import (
 from dyngs.datamanagers.files import load_json
 from dyngs.datamanagers.images import composite, downscale, read_image
 from dyngs.datamanagers.progress import progress_bar
+from dyngs.errors import DatasetError
 from dyngs.ply import read_ply
 from dyngs.types import Camera
 

@@ -53,7 +53,6 @@ from rich.progress import Progress, TaskID
 
 from dyngs.datamanagers.base import (
     HOST_CACHE_BYTES,
-    DatasetError,
     LazyImages,
     SceneData,
     Split,
@@ -70,6 +69,7 @@ from dyngs.datamanagers.files import load_npy
 from dyngs.datamanagers.images import downscale, downscaled_size
 from dyngs.datamanagers.procedural import cache_dir
 from dyngs.datamanagers.progress import progress_bar
+from dyngs.errors import DatasetError
 from dyngs.types import Camera
 
 POSES = "poses_bounds.npy"

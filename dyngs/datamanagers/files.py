@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 from jaxtyping import Float
 
-from dyngs.datamanagers.base import DatasetError
+from dyngs.errors import DatasetError
 
 
 def load_json(path: Path) -> dict[str, Any]:

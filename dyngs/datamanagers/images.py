@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 from jaxtyping import Float, UInt8
 
-from dyngs.datamanagers.base import DatasetError
+from dyngs.errors import DatasetError
 
 
 def read_image(path: Path | str) -> UInt8[np.ndarray, "H W C"]:

@@ -60,7 +60,6 @@ from jaxtyping import UInt8
 
 from dyngs.datamanagers.base import (
     HOST_CACHE_BYTES,
-    DatasetError,
     LazyImages,
     SceneData,
     Split,
@@ -82,6 +81,7 @@ from dyngs.datamanagers.images import (
     undistort,
 )
 from dyngs.datamanagers.progress import progress_bar
+from dyngs.errors import DatasetError
 from dyngs.types import Camera
 
 HOLDOUT_EVERY = 8

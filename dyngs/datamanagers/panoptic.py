@@ -40,7 +40,6 @@ from jaxtyping import Float, UInt8
 
 from dyngs.datamanagers.base import (
     HOST_CACHE_BYTES,
-    DatasetError,
     LazyImages,
     SceneData,
     Split,
@@ -55,6 +54,7 @@ from dyngs.datamanagers.cameras import (
 from dyngs.datamanagers.files import array, load_json, require, whole
 from dyngs.datamanagers.images import composite, downscale, downscaled_size, read_image
 from dyngs.datamanagers.progress import progress_bar
+from dyngs.errors import DatasetError
 from dyngs.types import Camera
 
 META_FILES = {"train": "train_meta.json", "test": "test_meta.json"}

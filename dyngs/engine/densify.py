@@ -64,7 +64,7 @@ class DensifyConfig:
     max_gaussians: int | None = None
     """The Gaussian budget: densification never goes beyond it (highest gradients first). The
     cap grows linearly toward it over the densification window. None: sized from the data
-    (dyngs/capacity.py)."""
+    (dyngs/engine/capacity.py)."""
 
     def __post_init__(self) -> None:
         if self.importance_views < 0:

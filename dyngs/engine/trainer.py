@@ -16,11 +16,11 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 from torch import Tensor
 
-from dyngs.capacity import pixel_footprint, resolve_capacity
 from dyngs.config import LossConfig, TrainConfig
 from dyngs.datamanagers.base import SceneData
 from dyngs.datamanagers.datamanager import DataManager, TrainBatch, load_scene
 from dyngs.datamanagers.fixed_cameras import FixedCameras
+from dyngs.engine.capacity import pixel_footprint, resolve_capacity
 from dyngs.engine.checkpoint import load_checkpoint, save_checkpoint
 from dyngs.engine.densify import (
     DensifyState,
@@ -40,12 +40,13 @@ from dyngs.engine.optim import build_optimizer, replace_params, set_learning_rat
 from dyngs.engine.writer import Writer
 from dyngs.errors import ConfigError, UserError
 from dyngs.fields.base import PlaneGrids
-from dyngs.losses.arap import arap_loss, knn, neighbor_weights
+from dyngs.losses.arap import arap_loss, neighbor_weights
 from dyngs.losses.photometric import photometric
 from dyngs.losses.temporal import time_l1_to_static, time_smoothness
 from dyngs.losses.tv import plane_tv
 from dyngs.metrics import psnr
 from dyngs.model import CanonicalGaussians, DynamicGaussians
+from dyngs.neighbors import knn
 from dyngs.renderers import renderer_name
 from dyngs.renderers.base import Renderer, RenderOutput
 

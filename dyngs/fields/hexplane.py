@@ -40,7 +40,7 @@ class HexPlaneConfig:
 
     resolution: tuple[int, int, int, int] | None = None
     """Grid size along x, y, z and t at the coarsest scale. None: sized from the data by the
-    trainer (dyngs/capacity.py): about 4 pixels per cell at the scene centre, and half a
+    trainer (dyngs/engine/capacity.py): about 4 pixels per cell at the scene centre, and half a
     cell per timestamp; (64, 64, 64, 25) when built without data (4DGaussians' default)."""
     multires: tuple[int, ...] = (1, 2)
     """Spatial resolution multiplier of each scale (4DGaussians' D-NeRF preset); time is never

@@ -1,6 +1,6 @@
 """Losses and regularizers: pure functions of tensors that return a scalar tensor."""
 
-from dyngs.losses.arap import arap_loss, knn, neighbor_weights, safe_norm
+from dyngs.losses.arap import arap_loss, neighbor_weights, safe_norm
 from dyngs.losses.photometric import dssim, l1, photometric, ssim_map
 from dyngs.losses.temporal import time_l1_to_static, time_smoothness
 from dyngs.losses.tv import plane_tv
@@ -8,7 +8,6 @@ from dyngs.losses.tv import plane_tv
 __all__ = [
     "arap_loss",
     "dssim",
-    "knn",
     "l1",
     "neighbor_weights",
     "photometric",

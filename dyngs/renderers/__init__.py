@@ -10,9 +10,10 @@ from typing import Annotated, Union
 
 import tyro
 
+from dyngs.errors import RendererUnavailable
 from dyngs.renderers.base import Renderer, RenderOutput
 from dyngs.renderers.cpu_reference import CpuReferenceConfig
-from dyngs.renderers.cuda_tile import CudaTileConfig, RendererUnavailable, cuda_tile_available
+from dyngs.renderers.cuda_tile import CudaTileConfig, cuda_tile_available
 
 RendererConfig = Union[  # noqa: UP007 (tyro reads the tags from this form)
     Annotated[CpuReferenceConfig, tyro.conf.subcommand("cpu-reference")],

@@ -32,15 +32,11 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
-from dyngs.errors import UserError
+from dyngs.errors import RendererUnavailable
 from dyngs.geometry import normalize_quaternion
 from dyngs.ops import finite_rows
 from dyngs.renderers.base import Guards, RenderOutput
 from dyngs.types import Camera, Gaussians
-
-
-class RendererUnavailable(UserError, RuntimeError):
-    """The chosen renderer cannot run on this machine (the message says what is missing)."""
 
 
 def cuda_tile_available() -> bool:

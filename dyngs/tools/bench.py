@@ -61,9 +61,9 @@ from dyngs.engine.trainer import CHECKPOINT_NAME
 from dyngs.errors import ConfigError, UserError
 from dyngs.fields.hexplane import DEFAULT_RESOLUTION, HexPlaneConfig
 from dyngs.fields.mlp import MLPFieldConfig
+from dyngs.io import write_json
 from dyngs.renderers import renderer_name
 from dyngs.tools.common import run_tool
-from dyngs.tools.eval import write_json
 
 SUBCOMMAND_KEYS = ("field", "renderer")
 """Grid keys that choose a component: `field=mlp` becomes the subcommand `field:mlp`."""

@@ -8,7 +8,6 @@ RUN/eval_<split>/. LPIPS is null, with one warning, when its weights are absent.
 
 from __future__ import annotations
 
-import json
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -19,10 +18,10 @@ import tyro
 from rich.console import Console
 from rich.table import Table
 
-from dyngs.engine.checkpoint import atomic_write_text
 from dyngs.engine.evaluate import evaluate
 from dyngs.engine.motion import model_bytes
 from dyngs.errors import ConfigError
+from dyngs.io import write_json
 from dyngs.renderers import renderer_name
 from dyngs.tools.common import LoadedRun, RunOverrides, load_run, run_tool
 
@@ -86,11 +85,6 @@ def evaluate_run(
         "device": str(run.device),
         "cpu_threads": torch.get_num_threads(),  # render_ms depends on it on CPU
     }
-
-
-def write_json(path: Path, data: Any) -> None:
-    """Atomic, indented, strict JSON (a NaN or inf is a bug, not a value to write)."""
-    atomic_write_text(path, json.dumps(data, indent=2, allow_nan=False) + "\n")
 
 
 def _cell(value: object, digits: int = 4) -> str:

@@ -25,8 +25,7 @@ from rich.console import Console
 from rich.progress import Progress
 from torch import Tensor
 
-from dyngs.datamanagers.base import DatasetError
-from dyngs.errors import ConfigError
+from dyngs.errors import ConfigError, DatasetError
 from dyngs.geometry import normalize_quaternion
 from dyngs.ply import read_ply, write_ply
 from dyngs.sh import num_sh_bases

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import torch
 
-from dyngs.datamanagers.base import DatasetError, LazyImages, SceneData, Split
+from dyngs.datamanagers.base import LazyImages, SceneData, Split
 from dyngs.datamanagers.datamanager import DataConfig, DataManager, load_scene
-from dyngs.errors import ConfigError
+from dyngs.errors import ConfigError, DatasetError
 from dyngs.types import Camera, SceneBox
 from tests.datamanagers.fixtures import small_dataset
 

@@ -11,8 +11,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from dyngs.datamanagers.base import DatasetError
 from dyngs.datamanagers.dnerf import parse_dnerf
+from dyngs.errors import DatasetError
 from tests.datamanagers.fixtures import small_dataset
 
 TRAIN = "transforms_train.json"

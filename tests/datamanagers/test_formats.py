@@ -16,12 +16,12 @@ import pytest
 import torch
 
 from dyngs.datamanagers import dynerf
-from dyngs.datamanagers.base import DatasetError, SceneData, Split
+from dyngs.datamanagers.base import SceneData, Split
 from dyngs.datamanagers.datamanager import DataConfig, load_scene
 from dyngs.datamanagers.dynerf import parse_dynerf
 from dyngs.datamanagers.nerfies import parse_nerfies
 from dyngs.datamanagers.panoptic import parse_panoptic
-from dyngs.errors import ConfigError
+from dyngs.errors import ConfigError, DatasetError
 from dyngs.types import Camera
 from tests.datamanagers.formats import (
     NerfiesWorld,

@@ -15,8 +15,8 @@ import pytest
 import torch
 
 from dyngs.cli import main
-from dyngs.datamanagers.base import DatasetError
 from dyngs.datamanagers.datamanager import DataConfig, DataManager, load_scene
+from dyngs.errors import DatasetError
 from tests.datamanagers.formats import write_dynerf, write_nerfies, write_panoptic
 
 Breakage = Callable[[Path], None]

@@ -8,8 +8,8 @@ import cv2
 import numpy as np
 import pytest
 
-from dyngs.datamanagers.base import DatasetError
 from dyngs.datamanagers.images import composite, downscale, read_image
+from dyngs.errors import DatasetError
 
 
 def test_read_image_converts_to_rgb_and_8_bit(tmp_path: Path) -> None:

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dyngs.datamanagers.base import DatasetError
+from dyngs.errors import DatasetError
 from dyngs.ply import read_ply, read_ply_elements, write_ply
 from tests.datamanagers.fixtures import SHARED_DATA
 

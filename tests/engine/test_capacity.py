@@ -9,7 +9,11 @@ from typing import Any
 import pytest
 import torch
 
-from dyngs.capacity import (
+from dyngs.config import TrainConfig
+from dyngs.datamanagers.base import SceneData
+from dyngs.datamanagers.datamanager import DataConfig, load_scene
+from dyngs.datamanagers.procedural import demo_path
+from dyngs.engine.capacity import (
     BUDGET_LIMITS,
     distinct_viewpoints,
     gaussian_budget,
@@ -17,10 +21,6 @@ from dyngs.capacity import (
     pixel_footprint,
     resolve_capacity,
 )
-from dyngs.config import TrainConfig
-from dyngs.datamanagers.base import SceneData
-from dyngs.datamanagers.datamanager import DataConfig, load_scene
-from dyngs.datamanagers.procedural import demo_path
 from dyngs.engine.densify import DensifyConfig, DensifyState, plan_refinement
 from dyngs.engine.trainer import Trainer
 from dyngs.engine.writer import NullWriter

@@ -9,8 +9,9 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-import dyngs.losses.arap as arap
-from dyngs.losses.arap import arap_loss, knn, neighbor_weights, safe_norm
+import dyngs.neighbors as neighbors_module
+from dyngs.losses.arap import arap_loss, neighbor_weights, safe_norm
+from dyngs.neighbors import knn
 
 
 def _points(n: int, seed: int = 0, dtype: torch.dtype = torch.float64) -> torch.Tensor:
@@ -48,7 +49,7 @@ def test_knn_agrees_with_brute_force(dtype: torch.dtype) -> None:
 @pytest.mark.parametrize("layout", ["uniform", "clusters", "plane", "outliers"])
 def test_knn_many_octree_leaves(layout: str, monkeypatch: pytest.MonkeyPatch) -> None:
     """Small leaves exercise the octree cut, sibling runs and the search radius."""
-    monkeypatch.setattr(arap, "KNN_LEAF_SIZE", 16)
+    monkeypatch.setattr(neighbors_module, "KNN_LEAF_SIZE", 16)
     gen = torch.Generator().manual_seed(1)
     if layout == "uniform":
         points = torch.rand(800, 3, generator=gen, dtype=torch.float64)

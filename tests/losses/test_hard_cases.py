@@ -13,8 +13,9 @@ import pytest
 import torch
 from torch import Tensor
 
-from dyngs.losses.arap import SAFE_NORM_EPS, arap_loss, knn, neighbor_weights
+from dyngs.losses.arap import SAFE_NORM_EPS, arap_loss, neighbor_weights
 from dyngs.losses.photometric import dssim, photometric, ssim_map
+from dyngs.neighbors import knn
 
 C1 = 0.01**2  # SSIM's stabilisers for data range 1 (Wang et al. 2004)
 DTYPES = [pytest.param(torch.float32, id="float32"), pytest.param(torch.float64, id="float64")]
