@@ -22,20 +22,25 @@ from pathlib import Path
 
 import torch
 
+from dyngs.renderers.base import ContributionRenderer
 from dyngs.tools.common import LoadedRun, load_run, machine_info
 
 
 def render_seconds(run: LoadedRun, view, contribution: bool, backward: bool) -> float:  # type: ignore[no-untyped-def]
+    renderer = run.renderer
+    if contribution and not isinstance(renderer, ContributionRenderer):
+        raise SystemExit(f"{run.run_dir}: its renderer does not measure contribution")
     background = run.data.scene.background.to(run.device, torch.float32)
     started = time.perf_counter()
     with torch.set_grad_enabled(backward):
         gaussians = run.model.at(view.time, run.sh_degree, deform=run.deform)
-        out = run.renderer(gaussians, view.camera, background, contribution=contribution)
+        if contribution and isinstance(renderer, ContributionRenderer):
+            out = renderer.with_contribution(gaussians, view.camera, background)
+        else:
+            out = renderer(gaussians, view.camera, background)
         if backward:
             out.rgb.sum().backward()
     seconds = time.perf_counter() - started
-    if contribution and out.contribution is None:
-        raise SystemExit(f"{run.run_dir}: its renderer does not measure contribution")
     run.model.zero_grad(set_to_none=True)
     return seconds
 

@@ -27,7 +27,8 @@ from pathlib import Path
 
 import torch
 
-from dyngs.renderers.cpu_reference import CpuReferenceConfig, project
+from dyngs.renderers.cpu_reference import CpuReferenceConfig
+from dyngs.renderers.stages import project
 from dyngs.types import Camera, Gaussians
 
 TARGETS = [  # (N, size, forward+backward target in s)

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from dyngs.renderers import cpu_reference
+from dyngs.renderers import cpu_reference, stages
 from dyngs.tools.common import load_run
 
 SIZES = cpu_reference._TILE_SIZES
@@ -36,7 +36,7 @@ def measure(run_dir: Path, repeats: int) -> list[dict[str, float]]:
         for view in list(run.data.views("test"))[::2]:
             camera = view.camera
             gaussians = run.model.at(view.time, run.sh_degree, deform=run.deform)
-            screen = cpu_reference.project(gaussians, camera, run.renderer.guards)
+            screen = stages.project(gaussians, camera, run.renderer.guards)
             pairs = cpu_reference.tile_pair_counts(screen, camera.width, camera.height, SIZES)
             chosen = cpu_reference.choose_tile_size(screen, camera.width, camera.height)
             frame: dict[str, float] = {"chosen": chosen}

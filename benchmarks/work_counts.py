@@ -25,12 +25,8 @@ from pathlib import Path
 
 import torch
 
-from dyngs.renderers.cpu_reference import (
-    CpuReferenceRenderer,
-    choose_tile_size,
-    project,
-    tile_pair_counts,
-)
+from dyngs.renderers.cpu_reference import CpuReferenceRenderer, choose_tile_size, tile_pair_counts
+from dyngs.renderers.stages import project
 from dyngs.tools.common import LoadedRun, load_run
 
 

@@ -1,8 +1,10 @@
 """The training config: one frozen dataclass composing every component's config.
 
 Each component config builds its component (`build(...)`); swappable parts are tagged
-unions the CLI offers as subcommands (`renderer:cpu-reference`, `field:mlp`, …). The
-docstring under each field is its `--help` text.
+unions the CLI offers as subcommands (`renderer:cpu-reference`, `field:mlp`, …),
+generated from the registries (`dyngs.registry`), so that a field, head or renderer an
+installed package registers is offered beside the built-in ones. The docstring under
+each field is its `--help` text.
 """
 
 from __future__ import annotations
@@ -10,7 +12,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Union
+from typing import TYPE_CHECKING, Annotated
 
 import tyro
 
@@ -19,16 +21,19 @@ from dyngs.engine.densify import DensifyConfig
 from dyngs.engine.motion import MotionConfig
 from dyngs.engine.optim import OptimConfig
 from dyngs.errors import ConfigError
-from dyngs.fields.heads import DeformationHeadConfig
-from dyngs.fields.hexplane import HexPlaneConfig
-from dyngs.fields.mlp import MLPFieldConfig
+from dyngs.fields import FIELDS, HEADS, DeformationHeadConfig, FieldSpec, HeadSpec, HexPlaneConfig
 from dyngs.model import GaussianConfig
-from dyngs.renderers import CpuReferenceConfig, CudaTileConfig, RendererConfig
+from dyngs.registry import tyro_union
+from dyngs.renderers import RENDERERS, CpuReferenceConfig, RendererSpec
 
-FieldConfig = Union[  # noqa: UP007 (tyro reads the tags from this form)
-    Annotated[HexPlaneConfig, tyro.conf.subcommand("hexplane")],
-    Annotated[MLPFieldConfig, tyro.conf.subcommand("mlp")],
-]
+if TYPE_CHECKING:  # the type checker sees the protocols every member satisfies
+    FieldConfig = FieldSpec
+    HeadConfig = HeadSpec
+    RendererConfig = RendererSpec
+else:  # the command line sees every registered config, plugins included
+    FieldConfig = tyro_union(FIELDS)
+    HeadConfig = tyro_union(HEADS)
+    RendererConfig = tyro_union(RENDERERS)
 
 
 @dataclass(frozen=True)
@@ -119,7 +124,7 @@ class TrainConfig:
     )
     gaussians: GaussianConfig = dataclasses.field(default_factory=GaussianConfig)
     field: FieldConfig = dataclasses.field(default_factory=HexPlaneConfig)
-    head: DeformationHeadConfig = dataclasses.field(default_factory=DeformationHeadConfig)
+    head: HeadConfig = dataclasses.field(default_factory=DeformationHeadConfig)
     renderer: RendererConfig = dataclasses.field(default_factory=CpuReferenceConfig)
     losses: LossConfig = dataclasses.field(default_factory=LossConfig)
     optim: OptimConfig = dataclasses.field(default_factory=OptimConfig)
@@ -160,4 +165,4 @@ class TrainConfig:
             raise ConfigError(f"--eval-split must be train, val or test, got {self.eval_split!r}")
 
 
-__all__ = ["CudaTileConfig", "FieldConfig", "LossConfig", "RendererConfig", "TrainConfig"]
+__all__ = ["FieldConfig", "HeadConfig", "LossConfig", "RendererConfig", "TrainConfig"]

@@ -1,10 +1,14 @@
 """Method presets: named, complete training configs offered as `dyngs-train` subcommands.
 
-Third-party packages add presets through the `dyngs.methods` entry-point group; each
-entry point names a `TrainConfig` or a zero-argument callable returning one:
+`METHODS` holds them by name; an installed package adds its own through the
+`dyngs.methods` entry-point group, each entry point naming a `TrainConfig` or a
+zero-argument callable returning one:
 
     [project.entry-points."dyngs.methods"]
     my-method = "my_package.presets:my_method"
+
+A preset only chooses among components; to add a component itself (a field, a renderer,
+a dataset format) register it in its own group (see `dyngs.registry`).
 """
 
 from __future__ import annotations
@@ -12,13 +16,20 @@ from __future__ import annotations
 import dataclasses
 import warnings
 from collections.abc import Callable
-from importlib.metadata import entry_points
 
 from dyngs.config import TrainConfig
 from dyngs.fields.mlp import MLPFieldConfig
+from dyngs.registry import Registry
 from dyngs.renderers import default_renderer
 
-ENTRY_POINT_GROUP = "dyngs.methods"
+Preset = TrainConfig | Callable[[], TrainConfig]
+
+
+def _check(item: object) -> str | None:
+    return None if isinstance(item, TrainConfig) or callable(item) else "is not a TrainConfig"
+
+
+METHODS: Registry[Preset] = Registry("method preset", "dyngs.methods", _check)
 
 
 def _hexplane_4dgs() -> TrainConfig:
@@ -31,40 +42,31 @@ def _mlp_4dgs() -> TrainConfig:
     return TrainConfig(field=MLPFieldConfig(), renderer=default_renderer())
 
 
-BUILTIN: dict[str, Callable[[], TrainConfig]] = {
-    "hexplane-4dgs": _hexplane_4dgs,
-    "mlp-4dgs": _mlp_4dgs,
-}
+METHODS.register("hexplane-4dgs", _hexplane_4dgs)
+METHODS.register("mlp-4dgs", _mlp_4dgs)
 
 
 def method_presets() -> tuple[dict[str, TrainConfig], dict[str, str]]:
     """Every preset (built-in, then third-party) and a one-line description of each."""
     presets: dict[str, TrainConfig] = {}
     descriptions: dict[str, str] = {}
-    for name, make in BUILTIN.items():
-        presets[name] = dataclasses.replace(make(), method=name)
-        descriptions[name] = (make.__doc__ or name).strip().splitlines()[0]
-    for ep in entry_points(group=ENTRY_POINT_GROUP):
-        if ep.name in presets:
-            warnings.warn(
-                f"method preset {ep.name!r} from {ep.value} shadows an existing one; ignored",
-                stacklevel=2,
-            )
-            continue
+    for entry in METHODS:
         try:
-            obj = ep.load()
-            config = obj() if callable(obj) and not isinstance(obj, TrainConfig) else obj
+            item = entry.item
+            config = item if isinstance(item, TrainConfig) else item()
         except Exception as error:  # a broken plugin must not break dyngs-train
             warnings.warn(
-                f"method preset {ep.name!r} ({ep.value}) failed to load: {error}", stacklevel=2
+                f"method preset {entry.name!r} ({entry.origin}) failed to load: {error}",
+                stacklevel=2,
             )
             continue
         if not isinstance(config, TrainConfig):
             warnings.warn(
-                f"method preset {ep.name!r} ({ep.value}) is not a TrainConfig; ignored",
+                f"method preset {entry.name!r} ({entry.origin}) is not a TrainConfig; ignored",
                 stacklevel=2,
             )
             continue
-        presets[ep.name] = dataclasses.replace(config, method=ep.name)
-        descriptions[ep.name] = f"{ep.value} (plugin)"
+        presets[entry.name] = dataclasses.replace(config, method=entry.name)
+        plugin = entry.origin != "dyngs"
+        descriptions[entry.name] = f"{entry.origin} (plugin)" if plugin else entry.description
     return presets, descriptions

@@ -15,8 +15,8 @@ import torch
 from jaxtyping import Bool, Float, Int
 from torch import Tensor, nn
 
-from dyngs.fields.base import Field
-from dyngs.fields.heads import DeformationHead, Deltas
+from dyngs.fields.base import Field, Head
+from dyngs.fields.heads import Deltas
 from dyngs.geometry import normalize_quaternion
 from dyngs.neighbors import knn
 from dyngs.ops import finite_rows
@@ -169,7 +169,7 @@ class DynamicGaussians(nn.Module):
         self,
         canonical: CanonicalGaussians,
         field: Field,
-        head: DeformationHead,
+        head: Head,
         box: SceneBox,
     ) -> None:
         super().__init__()

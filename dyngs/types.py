@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from typing import Protocol, runtime_checkable
 
 import torch
 from jaxtyping import Float
@@ -196,3 +197,28 @@ class SceneBox:
         lower = xyz.new_tensor(self.lower)
         upper = xyz.new_tensor(self.upper)
         return (xyz - lower) / (upper - lower) * 2 - 1
+
+
+@dataclass(frozen=True)
+class DataScale:
+    """What a scene's data can inform, for components that size themselves from it
+    (`DataSized`): measured from the parsed scene before anything is built."""
+
+    box: SceneBox
+    pixel_size: float
+    """World size of one pixel at the scene-box centre (median over training cameras)."""
+    num_timestamps: int
+    """Distinct training times."""
+    image_pixels: int
+    """Pixels of one training image."""
+    viewpoints: int
+    """Distinct training camera positions."""
+
+
+@runtime_checkable
+class DataSized(Protocol):
+    """A component config with sizes left for the data to choose (e.g. a grid resolution
+    of None). `sized_for` returns the config with them filled in; a config whose sizes
+    were all given returns itself. The run folder records the resolved config."""
+
+    def sized_for(self, scale: DataScale) -> DataSized: ...

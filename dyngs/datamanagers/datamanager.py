@@ -6,7 +6,7 @@ Letters: H×W image.
 from __future__ import annotations
 
 from bisect import bisect_left, bisect_right
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,10 +16,7 @@ from jaxtyping import Float
 from torch import Tensor
 
 from dyngs.datamanagers.base import HOST_CACHE_BYTES, LazyImages, SceneData, Split, image_size
-from dyngs.datamanagers.dnerf import parse_dnerf
-from dyngs.datamanagers.dynerf import parse_dynerf
-from dyngs.datamanagers.nerfies import parse_nerfies
-from dyngs.datamanagers.panoptic import parse_panoptic
+from dyngs.datamanagers.formats import FORMATS
 from dyngs.datamanagers.procedural import demo_path
 from dyngs.datamanagers.progress import report
 from dyngs.errors import ConfigError, DatasetError
@@ -62,50 +59,9 @@ class DataConfig:
             raise ConfigError(f"--device-cache-bytes must be ≥ 0, got {self.device_cache_bytes}")
         if self.host_cache_bytes < 0:
             raise ConfigError(f"--host-cache-bytes must be ≥ 0, got {self.host_cache_bytes}")
-        names = [AUTO, *(fmt.name for fmt in FORMATS)]
+        names = [AUTO, *FORMATS.names()]
         if self.format not in names:
             raise ConfigError(f"--format must be one of {', '.join(names)}, got {self.format!r}")
-
-
-@dataclass(frozen=True)
-class DatasetFormat:
-    name: str
-    marker: str
-    """A file at the top of the folder that identifies the format."""
-    parse: Callable[[Path, DataConfig, int], SceneData]
-
-
-def _parse_dnerf(path: Path, config: DataConfig, seed: int) -> SceneData:
-    return parse_dnerf(path, config.downscale, config.background, config.num_random_points, seed)
-
-
-CaptureParser = Callable[[Path, int, tuple[float, float, float], int, int, int], SceneData]
-"""parse(path, downscale, background, num_random_points, seed, cache_bytes)."""
-
-
-def _capture(parse: CaptureParser) -> Callable[[Path, DataConfig, int], SceneData]:
-    """A format read lazily (Panoptic, DyNeRF, Nerfies), which also takes the host cache."""
-
-    def run(path: Path, config: DataConfig, seed: int) -> SceneData:
-        return parse(
-            path,
-            config.downscale,
-            config.background,
-            config.num_random_points,
-            seed,
-            config.host_cache_bytes,
-        )
-
-    return run
-
-
-FORMATS: tuple[DatasetFormat, ...] = (
-    DatasetFormat("dnerf", "transforms_train.json", _parse_dnerf),
-    DatasetFormat("panoptic", "train_meta.json", _capture(parse_panoptic)),
-    DatasetFormat("dynerf", "poses_bounds.npy", _capture(parse_dynerf)),
-    DatasetFormat("nerfies", "dataset.json", _capture(parse_nerfies)),
-)
-"""On-disk formats, tried in order: the first whose marker file exists parses the folder."""
 
 
 def load_scene(data: str | Path, config: DataConfig, seed: int = 0) -> SceneData:
@@ -116,7 +72,7 @@ def load_scene(data: str | Path, config: DataConfig, seed: int = 0) -> SceneData
     on stderr says what was found.
     """
     if str(data) == DEMO:
-        scene = _parse_dnerf(demo_path(), config, seed)
+        scene = FORMATS.get("dnerf").parse(demo_path(), config, seed)
         report(f"[bold]dnerf[/bold] {scene.summary()}")
         return scene
     path = Path(data).expanduser()
@@ -125,17 +81,17 @@ def load_scene(data: str | Path, config: DataConfig, seed: int = 0) -> SceneData
     if not path.is_dir():
         raise DatasetError(f"{path}: not a directory")
     if config.format == AUTO:
-        found = [fmt for fmt in FORMATS if (path / fmt.marker).is_file()]
+        found = [entry for entry in FORMATS if (path / entry.item.marker).is_file()]
         if not found:
-            expected = " or ".join(fmt.marker for fmt in FORMATS)
+            expected = " or ".join(entry.item.marker for entry in FORMATS)
             raise DatasetError(
                 f"{path}: not a dataset folder (expected {expected} in it, or '{DEMO}')"
             )
-        fmt = found[0]
+        name, fmt = found[0].name, found[0].item
     else:
-        fmt = next(fmt for fmt in FORMATS if fmt.name == config.format)
+        name, fmt = config.format, FORMATS.get(config.format)
     scene = fmt.parse(path, config, seed)
-    report(f"[bold]{fmt.name}[/bold] {scene.summary()}")
+    report(f"[bold]{name}[/bold] {scene.summary()}")
     return scene
 
 

@@ -3,10 +3,9 @@
 Every size that a config leaves as None is filled here from the parsed scene, before
 anything is built, and the run folder records the resolved values:
 
-- HexPlane spatial resolution: a cell spans about `PIXELS_PER_CELL` pixels at the scene
-  centre, so the grid is as fine as the images can inform and no finer (the deformation
-  field is smooth; the Gaussians carry the detail). Time resolution: one cell per two
-  distinct timestamps, so neighbouring frames share a cell and the field interpolates.
+- Component configs that size themselves (`DataSized`, e.g. the HexPlane grid: about
+  4 pixels per cell at the scene centre, half a cell per timestamp) are given the scene's
+  `DataScale`.
 - The Gaussian budget: about one Gaussian per image pixel, times √(distinct viewpoints)/8
   within [0.5, 3] (more views resolve more surface), and within [5k, 3M] in all. The
   initial point cloud is subsampled to it too.
@@ -17,21 +16,15 @@ from __future__ import annotations
 import dataclasses
 import math
 import statistics
+from typing import Any
 
 import torch
 
 from dyngs.config import TrainConfig
 from dyngs.datamanagers.base import SceneData
-from dyngs.fields.hexplane import HexPlaneConfig
+from dyngs.types import DataScale, DataSized
 
-PIXELS_PER_CELL = 4.0
-SPATIAL_LIMITS = (8, 128)
-TIME_LIMITS = (2, 150)
 BUDGET_LIMITS = (5_000, 3_000_000)
-
-
-def _clamp(value: float, limits: tuple[int, int]) -> int:
-    return int(min(max(round(value), limits[0]), limits[1]))
 
 
 def pixel_footprint(scene: SceneData) -> float:
@@ -44,34 +37,47 @@ def pixel_footprint(scene: SceneData) -> float:
     return statistics.median(sizes)
 
 
-def hexplane_resolution(scene: SceneData) -> tuple[int, int, int, int]:
-    cell = PIXELS_PER_CELL * pixel_footprint(scene)
-    sx, sy, sz = (_clamp(size / cell, SPATIAL_LIMITS) for size in scene.scene_box.size)
-    st = _clamp(scene.num_timestamps / 2, TIME_LIMITS)
-    return (sx, sy, sz, st)
-
-
 def distinct_viewpoints(scene: SceneData, decimals: int = 3) -> int:
     centers = {tuple(round(float(v), decimals) for v in c.center) for c in scene.train.cameras}
     return len(centers)
 
 
-def gaussian_budget(scene: SceneData) -> int:
+def data_scale(scene: SceneData) -> DataScale:
+    """What the scene's training data can inform (see `DataScale`)."""
     camera = scene.train.cameras[0]
-    pixels = camera.width * camera.height
-    views = min(max(math.sqrt(distinct_viewpoints(scene)) / 8, 0.5), 3.0)
-    return _clamp(pixels * views, BUDGET_LIMITS)
+    return DataScale(
+        box=scene.scene_box,
+        pixel_size=pixel_footprint(scene),
+        num_timestamps=scene.num_timestamps,
+        image_pixels=camera.width * camera.height,
+        viewpoints=distinct_viewpoints(scene),
+    )
+
+
+def gaussian_budget(scale: DataScale) -> int:
+    views = min(max(math.sqrt(scale.viewpoints) / 8, 0.5), 3.0)
+    low, high = BUDGET_LIMITS
+    return int(min(max(round(scale.image_pixels * views), low), high))
+
+
+def _sized(config: Any, scale: DataScale) -> Any:
+    return config.sized_for(scale) if isinstance(config, DataSized) else config
 
 
 def resolve_capacity(config: TrainConfig, scene: SceneData) -> TrainConfig:
     """`config` with every data-sized value filled in from `scene`."""
-    field = config.field
-    if isinstance(field, HexPlaneConfig) and field.resolution is None:
-        field = dataclasses.replace(field, resolution=hexplane_resolution(scene))
+    scale = data_scale(scene)
+    budget = gaussian_budget(scale)
     densify = config.densify
     if densify.max_gaussians is None:
-        densify = dataclasses.replace(densify, max_gaussians=gaussian_budget(scene))
+        densify = dataclasses.replace(densify, max_gaussians=budget)
     gaussians = config.gaussians
     if gaussians.max_init_points is None:  # the data-sized budget, even when it was overridden
-        gaussians = dataclasses.replace(gaussians, max_init_points=gaussian_budget(scene))
-    return dataclasses.replace(config, field=field, densify=densify, gaussians=gaussians)
+        gaussians = dataclasses.replace(gaussians, max_init_points=budget)
+    return dataclasses.replace(
+        config,
+        field=_sized(config.field, scale),
+        head=_sized(config.head, scale),
+        densify=densify,
+        gaussians=gaussians,
+    )

@@ -48,7 +48,7 @@ from dyngs.metrics import psnr
 from dyngs.model import CanonicalGaussians, DynamicGaussians
 from dyngs.neighbors import knn
 from dyngs.renderers import renderer_name
-from dyngs.renderers.base import Renderer, RenderOutput
+from dyngs.renderers.base import ContributionRenderer, Renderer, RenderOutput
 
 CHECKPOINT_NAME = "checkpoint.pt"
 
@@ -245,9 +245,10 @@ class Trainer:
         probe = self.probe_degree()
         gaussians = self.model.at(batch.time, probe or self.active_sh, deform=deform)
         self.deformation_seconds += time.perf_counter() - started if deform else 0.0
-        out = self.renderer(
-            gaussians, batch.camera, self.background, contribution=self.prunes_by_drawn_views()
-        )
+        if self.prunes_by_drawn_views() and isinstance(self.renderer, ContributionRenderer):
+            out = self.renderer.with_contribution(gaussians, batch.camera, self.background)
+        else:
+            out = self.renderer(gaussians, batch.camera, self.background)
         self.nonfinite_culled += out.num_nonfinite.to(self.nonfinite_culled.device)
 
         weights = self.loss_weights(batch)
@@ -493,14 +494,14 @@ class Trainer:
         deform = self.deforming(step) and self.model.any_dynamic()
         importance = torch.zeros(len(self.model.canonical), device=self.device)
         poses = self.data.train_poses(self.time_window(step), cfg.densify.importance_views)
+        if not isinstance(self.renderer, ContributionRenderer):
+            return importance.fill_(math.inf)  # a renderer that cannot measure it never prunes
         with torch.no_grad():
             for camera, t in poses:
                 gaussians = self.model.at(t, self.active_sh, deform=deform)
-                out = self.renderer(gaussians, camera, self.background, contribution=True)
-                contribution = out.contribution
-                if contribution is None:  # a renderer that cannot measure it never prunes by it
-                    return importance.fill_(math.inf)
-                importance = torch.maximum(importance, contribution.to(importance.dtype))
+                out = self.renderer.with_contribution(gaussians, camera, self.background)
+                assert out.contribution is not None
+                importance = torch.maximum(importance, out.contribution.to(importance.dtype))
         return importance
 
     def apply_topology(self, change: TopologyChange, values: dict[str, Tensor]) -> None:

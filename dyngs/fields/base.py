@@ -1,16 +1,28 @@
-"""The field protocol: features of a point in space and time.
+"""The field and head protocols: features of a point in space and time, and the deltas
+that deform a Gaussian from them.
+
+A field is chosen by its config (`field:NAME`, registered in `dyngs.fields.FIELDS`), a
+frozen dataclass whose `build(box, *, generator)` returns the field (`FieldSpec`); a
+deformation head likewise (`HeadSpec`, `dyngs.fields.HEADS`). What only some fields can
+do is a small protocol of its own, checked with isinstance: `Croppable`.
 
 Letters: N points, F feature channels, R resolution along a plane axis, T along time.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
+import torch
 from jaxtyping import Float
 from torch import Tensor, nn
+
+from dyngs.types import SceneBox
+
+if TYPE_CHECKING:
+    from dyngs.fields.heads import Deltas
 
 
 @dataclass
@@ -39,3 +51,44 @@ class Field(Protocol):
     def planes(self) -> PlaneGrids: ...
 
     def parameters(self, recurse: bool = True) -> Iterator[nn.Parameter]: ...
+
+
+class FieldSpec(Protocol):
+    """A field's config: a frozen dataclass (its docstrings are the `--help` texts) that
+    builds the field for a scene box, drawing any random initial values from
+    `generator`."""
+
+    def build(self, box: SceneBox, *, generator: torch.Generator | None = None) -> Field: ...
+
+
+@runtime_checkable
+class Croppable(Protocol):
+    """A field that can drop the storage no Gaussian queries (`crop_to`): used at the end
+    of training to cut the field to the span of the dynamic Gaussians."""
+
+    def crop_to(
+        self, xyz: Float[Tensor, "N 3"]
+    ) -> Callable[[Sequence[Tensor]], list[Tensor]] | None:
+        """Keep what sampling at `xyz` reads. Returns the map that carries tensors laid out
+        like the old parameters (Adam's moments) to the new layout, or None when nothing
+        could be cut."""
+        ...
+
+
+class Head(Protocol):
+    """Turns [N, F] field features into per-Gaussian deltas (`Deltas`). Implementations are
+    `torch.nn.Module`s whose outputs are exactly zero before training, so that step 0
+    draws the canonical scene."""
+
+    def __call__(self, features: Float[Tensor, "N F"]) -> Deltas: ...
+
+    def parameters(self, recurse: bool = True) -> Iterator[nn.Parameter]: ...
+
+
+class HeadSpec(Protocol):
+    """A deformation head's config: builds the head for `in_dim` field features; `box`
+    sets the scale of position deltas."""
+
+    def build(
+        self, in_dim: int, box: SceneBox, *, generator: torch.Generator | None = None
+    ) -> Head: ...

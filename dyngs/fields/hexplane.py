@@ -10,6 +10,7 @@ its defaults and the deformation road it feeds are 4D Gaussian Splatting (Wu et 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -22,7 +23,7 @@ from torch import Tensor, nn
 from dyngs.errors import ConfigError
 from dyngs.fields._common import space_time
 from dyngs.fields.base import PlaneGrids
-from dyngs.types import SceneBox
+from dyngs.types import DataScale, SceneBox
 
 PLANE_AXES: tuple[tuple[int, int], ...] = ((0, 1), (0, 2), (1, 2), (0, 3), (1, 3), (2, 3))
 """The coordinate pair (a, b) of each plane in canonical order xy, xz, yz, xt, yt, zt, with
@@ -30,6 +31,12 @@ axes 0, 1, 2, 3 = x, y, z, t. Plane (a, b) is stored [F, R_b, R_a]: a runs along
 (grid_sample's x) and b along dim -2, so time planes have time along dim -2."""
 DEFAULT_RESOLUTION = (64, 64, 64, 25)
 """The grid size used when no data sized it (4DGaussians' D-NeRF default)."""
+PIXELS_PER_CELL = 4.0
+"""A data-sized grid cell spans about this many pixels at the scene centre: as fine as
+the images can inform and no finer (the deformation field is smooth; the Gaussians carry
+the detail)."""
+SPATIAL_LIMITS = (8, 128)
+TIME_LIMITS = (2, 150)
 _SPATIAL_PLANES = 3
 """The first three planes of PLANE_AXES are spatial, the last three hold time."""
 
@@ -39,9 +46,9 @@ class HexPlaneConfig:
     """Multi-scale HexPlane / K-Planes feature field (4D Gaussian Splatting, Wu et al. 2024)."""
 
     resolution: tuple[int, int, int, int] | None = None
-    """Grid size along x, y, z and t at the coarsest scale. None: sized from the data by the
-    trainer (dyngs/engine/capacity.py): about 4 pixels per cell at the scene centre, and half a
-    cell per timestamp; (64, 64, 64, 25) when built without data (4DGaussians' default)."""
+    """Grid size along x, y, z and t at the coarsest scale. None: sized from the data
+    (`sized_for`): about 4 pixels per cell at the scene centre, and one cell per two
+    timestamps; (64, 64, 64, 25) when built without data (4DGaussians' default)."""
     multires: tuple[int, ...] = (1, 2)
     """Spatial resolution multiplier of each scale (4DGaussians' D-NeRF preset); time is never
     multiplied (Wu et al. 2024)."""
@@ -68,6 +75,25 @@ class HexPlaneConfig:
 
     def build(self, box: SceneBox, *, generator: torch.Generator | None = None) -> HexPlaneField:
         return HexPlaneField(self, box, generator=generator)
+
+    def sized_for(self, scale: DataScale) -> HexPlaneConfig:
+        """The grid sized from the data when `resolution` is None: a cell spans about
+        PIXELS_PER_CELL pixels at the scene centre, and time gets one cell per two
+        timestamps, so neighbouring frames share a cell and the field interpolates."""
+        if self.resolution is not None:
+            return self
+        return dataclasses.replace(self, resolution=data_sized_resolution(scale))
+
+
+def _clamp(value: float, limits: tuple[int, int]) -> int:
+    return int(min(max(round(value), limits[0]), limits[1]))
+
+
+def data_sized_resolution(scale: DataScale) -> tuple[int, int, int, int]:
+    """The coarsest scale's grid size for a scene (see `HexPlaneConfig.sized_for`)."""
+    cell = PIXELS_PER_CELL * scale.pixel_size
+    sx, sy, sz = (_clamp(size / cell, SPATIAL_LIMITS) for size in scale.box.size)
+    return (sx, sy, sz, _clamp(scale.num_timestamps / 2, TIME_LIMITS))
 
 
 class HexPlaneField(nn.Module):

@@ -4,25 +4,39 @@ Letters used in shapes: N Gaussians, H×W image.
 
 A renderer is one call: Gaussians, a camera and a background colour in; an image and
 the per-Gaussian screen-space data that densification needs out. Every renderer obeys
-the numerical guards below (DESIGN.md), in forward and backward alike.
+the numerical guards below (docs/DESIGN.md), in forward and backward alike, and starts
+from the same `prepare` stage (`dyngs.renderers.stages`).
+
+A renderer is chosen by its config (`renderer:NAME`, registered in
+`dyngs.renderers.RENDERERS`), a frozen dataclass whose `build()` returns it
+(`RendererSpec`). What only some renderers can do is a protocol of its own, checked with
+isinstance: `ContributionRenderer`.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Protocol, runtime_checkable
 
 from jaxtyping import Bool, Float, Int
 from torch import Tensor
 
 from dyngs.types import Camera, Gaussians
 
-__all__ = ["Camera", "Gaussians", "Guards", "RenderOutput", "Renderer"]
+__all__ = [
+    "Camera",
+    "ContributionRenderer",
+    "Gaussians",
+    "Guards",
+    "RenderOutput",
+    "Renderer",
+    "RendererSpec",
+]
 
 
 @dataclass(frozen=True)
 class Guards:
-    """Numerical guards shared by every renderer (DESIGN.md's table)."""
+    """Numerical guards shared by every renderer (the table in docs/DESIGN.md)."""
 
     eps2d: float = 0.3
     """Added to the diagonal of every 2D covariance, in px² (the low-pass filter of Kerbl et al.
@@ -61,21 +75,38 @@ class RenderOutput:
     waits for the device; the caller decides when to read it."""
     contribution: Float[Tensor, " N"] | None = None
     """Each Gaussian's blending weight αT summed over the image's pixels (no gradient): how
-    much of the picture it makes, for pruning by importance. None unless the call asked
-    for it (`contribution=True`), and where a renderer cannot measure it."""
+    much of the picture it makes, for pruning by importance. Measured only by
+    `ContributionRenderer.with_contribution`; None otherwise."""
 
 
 class Renderer(Protocol):
     """Draws Gaussians from one camera over a background colour."""
 
     def __call__(
-        self,
-        gaussians: Gaussians,
-        camera: Camera,
-        background: Float[Tensor, 3],
-        *,
-        contribution: bool = False,
+        self, gaussians: Gaussians, camera: Camera, background: Float[Tensor, 3]
+    ) -> RenderOutput: ...
+
+
+@runtime_checkable
+class ContributionRenderer(Protocol):
+    """A renderer that can also measure each Gaussian's contribution to the picture
+    (`RenderOutput.contribution`), which pruning by importance needs. It costs a pass
+    over every Gaussian–pixel pair, so only pruning asks for it."""
+
+    def __call__(
+        self, gaussians: Gaussians, camera: Camera, background: Float[Tensor, 3]
+    ) -> RenderOutput: ...
+
+    def with_contribution(
+        self, gaussians: Gaussians, camera: Camera, background: Float[Tensor, 3]
     ) -> RenderOutput:
-        """`contribution`: also measure `RenderOutput.contribution`. It costs a pass over
-        every Gaussian–pixel pair, so only pruning asks for it."""
+        """As a call, with `RenderOutput.contribution` measured."""
         ...
+
+
+class RendererSpec(Protocol):
+    """A renderer's config: a frozen dataclass (its docstrings are the `--help` texts)
+    whose `build()` returns the renderer, or raises `RendererUnavailable` saying what
+    this machine lacks."""
+
+    def build(self) -> Renderer: ...

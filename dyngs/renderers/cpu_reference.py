@@ -8,10 +8,11 @@ Letters: N Gaussians, V visible Gaussians, M tile–Gaussian intersections, C ti
 chunk, K Gaussians per tile (padded), P pixels per tile, H×W image.
 
 The road, per camera:
-1. `project`: EWA splatting (Zwicker et al. 2001) as in 3D Gaussian Splatting (Kerbl et
-   al. 2023): camera-space means, 2D covariance J W Σ Wᵀ Jᵀ with the off-axis clamp,
-   +0.3 px² dilation, culling, and a per-axis screen extent that holds every pixel where
-   α ≥ 1/255 (so binning into tiles never changes the image).
+1. `prepare` and `project` (`dyngs.renderers.stages`, shared with the other renderers
+   that project in PyTorch): EWA splatting (Zwicker et al. 2001) as in 3D Gaussian
+   Splatting (Kerbl et al. 2023): camera-space means, 2D covariance J W Σ Wᵀ Jᵀ with the
+   off-axis clamp, +0.3 px² dilation, culling, and a per-axis screen extent that holds
+   every pixel where α ≥ 1/255 (so binning into tiles never changes the image).
 2. `rasterize`: bin into tiles, sort each tile's Gaussians by depth, and composite front
    to back over all tiles at once, chunked so that tiles of similar depth complexity are
    padded together.
@@ -30,25 +31,17 @@ from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
-from jaxtyping import Bool, Float, Int
+from jaxtyping import Float, Int
 from torch import Tensor
 
 from dyngs.errors import ConfigError
-from dyngs.geometry import covariance_3d
-from dyngs.ops import finite_rows, gather
+from dyngs.ops import gather
 from dyngs.renderers.base import Guards, RenderOutput
-from dyngs.sh import eval_sh
+from dyngs.renderers.stages import GEOMETRY_DTYPE, ScreenGaussians, pixel_range, project
 from dyngs.types import Camera, Gaussians
-
-GEOMETRY_DTYPE = torch.float64
 
 # A padded slot's exponent row: α = exp(-1e4) = 0, so it is skipped like any α < 1/255.
 _PAD_EXPONENT = -1e4
-# The extent is widened by this much (relative, then absolute in px) so that rounding
-# never leaves out a pixel whose α reaches the threshold; a wider extent costs a few
-# skipped pairs and never changes the image.
-_EXTENT_RELATIVE_MARGIN = 1e-4
-_EXTENT_ABSOLUTE_MARGIN = 1e-3
 
 
 @dataclass(frozen=True)
@@ -74,24 +67,11 @@ class CpuReferenceConfig:
         return CpuReferenceRenderer(self)
 
 
-@dataclass
-class ScreenGaussians:
-    """Gaussians projected onto one image: everything `rasterize` needs."""
-
-    means2d: Float[Tensor, "N 2"]
-    conics: Float[Tensor, "N 3"]
-    """Inverse of the dilated 2D covariance as (a, b, c): [[a, b], [b, c]]."""
-    opacities: Float[Tensor, " N"]
-    depths: Float[Tensor, " N"]
-    colors: Float[Tensor, "N 3"]
-    extents: Float[Tensor, "N 2"]
-    """Half-widths in px of the box holding every pixel centre where α ≥ alpha_min."""
-    visible: Bool[Tensor, " N"]
-    num_nonfinite: Int[Tensor, ""]
-    """How many Gaussians were culled for a NaN or ±Inf parameter (0-d, on the device)."""
-
-
 class CpuReferenceRenderer:
+    """`prepare` → `project` → `rasterize`, all in PyTorch; autograd does the backward.
+    `contribution=True` (or `with_contribution`) also measures each Gaussian's
+    contribution."""
+
     def __init__(self, config: CpuReferenceConfig | None = None, guards: Guards | None = None):
         self.config = config or CpuReferenceConfig()
         self.guards = guards or Guards()
@@ -133,104 +113,11 @@ class CpuReferenceRenderer:
             contribution=weights,
         )
 
-
-def project(
-    gaussians: Gaussians, camera: Camera, guards: Guards, antialiased: bool = False
-) -> ScreenGaussians:
-    """Project Gaussians onto the image plane of `camera` (EWA splatting)."""
-    device, dtype = gaussians.means.device, GEOMETRY_DTYPE
-    g = gaussians
-    # Non-finite rows are replaced by harmless values *before* any arithmetic, so that
-    # neither they nor their gradients (0·NaN = NaN) can leak into the rest of the scene.
-    used_colors = g.colors if g.sh_degree is None else g.colors[:, : (g.sh_degree + 1) ** 2]
-    finite = finite_rows(g.means, g.quats, g.scales, g.opacities, used_colors)
-    keep = finite[:, None]
-    means = torch.where(keep, g.means, 0).to(dtype)
-    quats = torch.where(keep, g.quats, 0).to(dtype)
-    scales = torch.where(keep, g.scales, 0).to(dtype)
-    opacities = torch.where(finite, g.opacities, 0).to(dtype)
-    colors = torch.where(finite.view(-1, *[1] * (g.colors.ndim - 1)), g.colors, 0)
-
-    w2c = camera.world_to_camera.to(device=device, dtype=dtype)
-    rot, trans = w2c[:3, :3], w2c[:3, 3]
-    p_cam = means @ rot.T + trans
-    x, y, z = p_cam.unbind(-1)
-    in_depth = (z > camera.near) & (z < camera.far)
-    z = torch.where(in_depth, z, 1.0)  # culled rows never divide by a tiny or negative depth
-
-    fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
-    means2d = torch.stack((fx * x / z + cx, fy * y / z + cy), dim=-1)
-
-    # The Jacobian of the perspective map sees the centre clamped to 1.3× the half field of
-    # view, so Gaussians far off-axis do not get enormous, unstable footprints.
-    lim_x = guards.off_axis * 0.5 * camera.width / fx
-    lim_y = guards.off_axis * 0.5 * camera.height / fy
-    tx = (x / z).clamp(-lim_x, lim_x) * z
-    ty = (y / z).clamp(-lim_y, lim_y) * z
-    zeros = torch.zeros_like(z)
-    jac = torch.stack(
-        (fx / z, zeros, -fx * tx / (z * z), zeros, fy / z, -fy * ty / (z * z)), dim=-1
-    ).reshape(-1, 2, 3)
-    t = jac @ rot
-    cov2d = t @ covariance_3d(quats, scales, guards.quat_eps) @ t.transpose(1, 2)
-    a, b, c = cov2d[:, 0, 0], cov2d[:, 0, 1], cov2d[:, 1, 1]
-    a_d, c_d = a + guards.eps2d, c + guards.eps2d
-    det = a_d * c_d - b * b
-    if antialiased:
-        compensation = ((a * c - b * b).clamp_min(0) / det.clamp_min(1e-30)).sqrt()
-        opacities = opacities * compensation
-    # Finite float64 parameters can still overflow here (scales beyond ~1e120 make det
-    # inf, and then a conic entry is inf / inf = NaN). Such rows are culled, as the oracle
-    # does; a finite det implies finite a_d, b, c_d and so a finite conic.
-    valid = finite & in_depth & (det > 0) & (opacities >= guards.alpha_min)
-    valid &= finite_rows(det, means2d)
-    det = torch.where(valid, det, 1.0)
-    conics = torch.stack((c_d / det, -b / det, a_d / det), dim=-1)
-
-    with torch.no_grad():
-        # α ≥ alpha_min  ⟺  dᵀ Σ⁻¹ d ≤ 2 ln(o / alpha_min): an ellipse whose bounding box
-        # has half-widths √(2 ln(o / alpha_min) Σ_xx) and √(… Σ_yy).
-        level = 2 * torch.log(torch.where(valid, opacities / guards.alpha_min, 1.0))
-        extents = (level.clamp_min(0)[:, None] * torch.stack((a_d, c_d), -1).clamp_min(0)).sqrt()
-        extents = extents * (1 + _EXTENT_RELATIVE_MARGIN) + _EXTENT_ABSOLUTE_MARGIN
-        lo, hi = _pixel_range(means2d, extents, camera.width, camera.height)
-        visible = valid & (lo <= hi).all(dim=-1)
-        extents = torch.where(visible[:, None], extents, 0)
-
-    if g.sh_degree is None:
-        rgb = colors
-    else:
-        # View directions from the float64 means and camera centre: in float32, a scene
-        # 1e4 units from the origin loses ~1e-3 units of its camera-relative position to
-        # rounding (ulp(1e4) ≈ 1e-3), which shifted SH colours by up to 1e-3 against the
-        # oracle. The difference of nearby points is exact in float64; only the (short)
-        # result is rounded to the input dtype.
-        center = -rot.T @ trans
-        rgb = eval_sh(g.sh_degree, colors, (means - center).to(g.means.dtype))
-    return ScreenGaussians(
-        means2d=means2d,
-        conics=conics,
-        opacities=torch.where(valid, opacities, 0),
-        depths=z,
-        colors=rgb,
-        extents=extents,
-        visible=visible,
-        num_nonfinite=(~finite).sum(),
-    )
-
-
-def _pixel_range(
-    means2d: Float[Tensor, "N 2"], extents: Float[Tensor, "N 2"], width: int, height: int
-) -> tuple[Int[Tensor, "N 2"], Int[Tensor, "N 2"]]:
-    """Inclusive (column, row) index range of pixel centres inside each box, clipped to the
-    image; empty when lo > hi."""
-    size = torch.tensor([width, height], device=means2d.device, dtype=means2d.dtype)
-    # Pixel j's centre is j + 0.5. Clamping in float first keeps huge boxes from
-    # overflowing the integer conversion.
-    lo = torch.ceil(torch.minimum((means2d - extents - 0.5).clamp_min(-1), size)).long()
-    hi = torch.floor(torch.minimum((means2d + extents - 0.5).clamp_min(-1), size)).long()
-    limit = size.long() - 1
-    return lo.clamp_min(0), torch.minimum(hi, limit)
+    def with_contribution(
+        self, gaussians: Gaussians, camera: Camera, background: Float[Tensor, 3]
+    ) -> RenderOutput:
+        """As a call, with each Gaussian's contribution measured (`ContributionRenderer`)."""
+        return self(gaussians, camera, background, contribution=True)
 
 
 @dataclass
@@ -256,7 +143,7 @@ def tile_pair_counts(
 ) -> list[int]:
     """How many (tile, Gaussian) pairs binning makes at each tile size."""
     visible = screen.visible.nonzero().squeeze(1)
-    lo, hi = _pixel_range(screen.means2d.detach()[visible], screen.extents[visible], width, height)
+    lo, hi = pixel_range(screen.means2d.detach()[visible], screen.extents[visible], width, height)
     return [int((hi // size - lo // size + 1).prod(dim=1).sum()) for size in tile_sizes]
 
 
@@ -276,7 +163,7 @@ def _bin(screen: ScreenGaussians, width: int, height: int, tile_size: int) -> _B
     device = screen.means2d.device
     visible = screen.visible.nonzero().squeeze(1)
     order = visible[torch.argsort(screen.depths.detach()[visible], stable=True)]
-    lo, hi = _pixel_range(screen.means2d.detach()[order], screen.extents[order], width, height)
+    lo, hi = pixel_range(screen.means2d.detach()[order], screen.extents[order], width, height)
     t_lo, t_hi = lo // tile_size, hi // tile_size
     span = t_hi - t_lo + 1  # [V, 2] tiles along x and y
     per_gaussian = span[:, 0] * span[:, 1]

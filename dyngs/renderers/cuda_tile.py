@@ -5,8 +5,8 @@ tests/renderers/test_cuda_tile.py and the hard cases in tests/renderers/test_har
 (skipped without a CUDA device).
 
 How our guards map onto gsplat (v1.4+):
-- near plane, far plane → `near_plane`, `far_plane`, and decided here as well, because
-  gsplat culls only z < near where the guard table culls z ≤ near; 0.3 px² dilation →
+- near plane, far plane → `near_plane`, `far_plane`, and decided by `prepare` as well,
+  because gsplat culls only z < near where the guard table culls z ≤ near; 0.3 px² dilation →
   `eps2d`; Mip-Splatting compensation → `rasterize_mode="antialiased"`.
 - A zero quaternion is handed over as the identity (gsplat would normalise it to NaN).
 - α clamp: gsplat clamps α at 0.999 where we clamp at 0.99. Opacities are clamped to
@@ -17,10 +17,10 @@ How our guards map onto gsplat (v1.4+):
   pixel with α ≥ 1/255 either.
 - Early stop: gsplat stops when T would fall to ≤ 1e-4 (we: < 1e-4); the two differ
   only when T lands exactly on the threshold.
-- Non-finite parameters are culled here, as in the reference, before gsplat sees them,
-  and counted in `RenderOutput.num_nonfinite`.
-- Means are handed over camera-relative (computed in float64), so a float32 scene far
-  from the origin keeps its precision (docs/NUMERICS.md).
+- Non-finite parameters are culled, and depth decided, by the shared `prepare` stage
+  before gsplat sees anything, exactly as in the reference.
+- Means are handed over camera-relative (computed in float64 by `prepare`), so a float32
+  scene far from the origin keeps its precision (docs/NUMERICS.md).
 """
 
 from __future__ import annotations
@@ -34,8 +34,8 @@ from torch import Tensor
 
 from dyngs.errors import RendererUnavailable
 from dyngs.geometry import normalize_quaternion
-from dyngs.ops import finite_rows
 from dyngs.renderers.base import Guards, RenderOutput
+from dyngs.renderers.stages import prepare
 from dyngs.types import Camera, Gaussians
 
 
@@ -79,61 +79,48 @@ class CudaTileRenderer:
         self.guards = guards or Guards()
 
     def __call__(
-        self,
-        gaussians: Gaussians,
-        camera: Camera,
-        background: Float[Tensor, " 3"],
-        *,
-        contribution: bool = False,
+        self, gaussians: Gaussians, camera: Camera, background: Float[Tensor, " 3"]
     ) -> RenderOutput:
-        """`contribution` is not measured here (gsplat does not report it): the output's is
-        None, so pruning by importance keeps every Gaussian."""
+        """gsplat does not report each Gaussian's contribution, so this is not a
+        `ContributionRenderer`: a run with it prunes by opacity and size alone, and says so."""
         g, guards = gaussians, self.guards
-        device = g.means.device
+        device, dtype = g.means.device, g.means.dtype
         n = len(g)
-        used = g.colors if g.sh_degree is None else g.colors[:, : (g.sh_degree + 1) ** 2]
-        finite = finite_rows(g.means, g.quats, g.scales, g.opacities, used)
-        keep = finite[:, None]
-        # Only the coefficients in use are handed over, so that nothing gsplat reads can
-        # hold a value the finiteness check did not see.
-        colors = torch.where(finite.view(-1, *[1] * (used.ndim - 1)), used, 0)
+        # Only the coefficients in use are handed over (`prepare` keeps those alone), so that
+        # nothing gsplat reads can hold a value the finiteness check did not see.
+        ready = prepare(g, camera)
         K = torch.tensor(
             [[camera.fx, 0.0, camera.cx], [0.0, camera.fy, camera.cy], [0.0, 0.0, 1.0]],
             device=device,
-            dtype=g.means.dtype,
+            dtype=dtype,
         )
         # gsplat projects in float32, where a scene 1e4 units from the origin loses ~1e-3
-        # units of camera-relative position (ulp(1e4) ≈ 1e-3). So the scene is shifted by
-        # the camera centre c = −Rᵀt in float64 first: gsplat sees means μ − c and the
-        # translation t + Rc (≈ 0), and R(μ − c) + (t + Rc) = Rμ + t, whatever rounding
-        # left in R. SH directions are unchanged when R is orthonormal; a float32 R is so
-        # only to ~1e-7, which far from the origin moves the camera centre gsplat derives
-        # by ~1e-7·|t|: keep world_to_camera in float64 there (docs/NUMERICS.md).
-        w2c = camera.world_to_camera.to(device=device, dtype=torch.float64)
-        rotation, translation = w2c[:3, :3], w2c[:3, 3]
-        center = -rotation.T @ translation
-        means64 = torch.where(keep, g.means, 0).double()
-        means = (means64 - center).to(g.means.dtype)
-        # gsplat culls only z < near; the guard table culls z ≤ near (and z ≥ far). Decided
-        # here in float64; a culled row gets opacity 0, so gsplat draws nothing of it.
-        with torch.no_grad():
-            depth = means64 @ rotation[2] + translation[2]
-            in_depth = (depth > camera.near) & (depth < camera.far)
-        opacities = torch.where(finite & in_depth, g.opacities, 0).clamp(0, guards.alpha_max)
-        viewmat = w2c.clone()
-        viewmat[:3, 3] = translation + rotation @ center
-        viewmat = viewmat.to(g.means.dtype)
+        # units of camera-relative position. So it sees the means shifted by the camera
+        # centre c = −Rᵀt in float64, μ − c, and the translation t + Rc (≈ 0):
+        # R(μ − c) + (t + Rc) = Rμ + t, whatever rounding left in R. SH directions are
+        # unchanged when R is orthonormal; a float32 R is so only to ~1e-7, which far from
+        # the origin moves the camera centre gsplat derives by ~1e-7·|t|: keep
+        # world_to_camera in float64 there (docs/NUMERICS.md).
+        means = ready.relative_means().to(dtype)
+        # gsplat culls only z < near; the guard table culls z ≤ near (and z ≥ far), decided
+        # in `prepare`: a culled row gets opacity 0, so gsplat draws nothing of it.
+        finite, in_depth = ready.finite, ready.in_depth
+        opacities = torch.where(in_depth, ready.opacities, 0).to(dtype).clamp(0, guards.alpha_max)
+        viewmat = torch.eye(4, device=device, dtype=torch.float64)
+        viewmat[:3, :3] = ready.rotation
+        viewmat[:3, 3] = ready.translation + ready.rotation @ ready.center
+        viewmat = viewmat.to(dtype)
         # gsplat normalises quaternions itself, and a zero one would become NaN there; the
         # guard table makes it the identity rotation, as `quaternion_to_rotation` does.
-        quats = normalize_quaternion(torch.where(keep, g.quats, 0), guards.quat_eps)
+        quats = normalize_quaternion(ready.quats.to(dtype), guards.quat_eps)
         identity = torch.tensor([1.0, 0.0, 0.0, 0.0], device=device, dtype=quats.dtype)
         quats = torch.where((quats == 0).all(dim=-1, keepdim=True), identity, quats)
         rgbd, alpha, meta = self._rasterization(
             means=means,
             quats=quats,
-            scales=torch.where(keep, g.scales, 0),
+            scales=ready.scales.to(dtype),
             opacities=opacities,
-            colors=colors,
+            colors=ready.colors,
             viewmats=viewmat[None],
             Ks=K[None],
             width=camera.width,
@@ -144,7 +131,7 @@ class CudaTileRenderer:
             sh_degree=g.sh_degree,
             packed=self.config.packed,
             tile_size=self.config.tile_size,
-            backgrounds=background.to(device=device, dtype=g.means.dtype)[None],
+            backgrounds=background.to(device=device, dtype=dtype)[None],
             render_mode="RGB+ED",
             absgrad=self.config.absgrad,
             rasterize_mode="antialiased" if self.config.antialiased else "classic",
@@ -174,5 +161,5 @@ class CudaTileRenderer:
             means2d=means2d_out,
             radii=torch.where(visible[:, None], radii, 0).int(),
             visible=visible,
-            num_nonfinite=(~finite).sum(),
+            num_nonfinite=ready.num_nonfinite,
         )

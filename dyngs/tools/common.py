@@ -14,7 +14,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import torch
 from rich.console import Console
@@ -27,10 +27,8 @@ from dyngs.engine.trainer import CHECKPOINT_NAME, Trainer
 from dyngs.engine.writer import NullWriter
 from dyngs.errors import ConfigError, UserError
 from dyngs.model import DynamicGaussians
-from dyngs.renderers import CpuReferenceConfig, CudaTileConfig, renderer_name
+from dyngs.renderers import RENDERERS, renderer_name
 from dyngs.renderers.base import Renderer
-
-RendererChoice = Literal["run", "cpu-reference", "cuda-tile"]
 
 
 def machine_info(threads: int | None = None) -> dict[str, Any]:
@@ -77,8 +75,14 @@ class RunOverrides:
 
     device: str | None = None
     """Device to load onto (`cpu`, `cuda`, …); default: the one the run was trained with."""
-    renderer: RendererChoice = "run"
-    """Renderer to draw with: `run` (the one trained with), `cpu-reference` or `cuda-tile`."""
+    renderer: str = "run"
+    """Renderer to draw with: `run` (the one trained with) or a registered one
+    (`cpu-reference`, `cuda-tile`, or one an installed package adds)."""
+
+    def __post_init__(self) -> None:
+        if self.renderer != "run" and self.renderer not in RENDERERS:
+            known = ", ".join(["run", *RENDERERS.names()])
+            raise ConfigError(f"--renderer must be one of {known}, got {self.renderer!r}")
     data: str | None = None
     """Dataset folder, when it has moved since training (default: the run's `--data`)."""
 
@@ -134,10 +138,8 @@ def load_run(
     changes: dict[str, Any] = {}
     if device is not None or overrides.device is not None:
         changes["device"] = str(device if device is not None else overrides.device)
-    if overrides.renderer == "cpu-reference" and renderer_name(config.renderer) != "cpu-reference":
-        changes["renderer"] = CpuReferenceConfig()
-    elif overrides.renderer == "cuda-tile" and renderer_name(config.renderer) != "cuda-tile":
-        changes["renderer"] = CudaTileConfig()
+    if overrides.renderer not in ("run", renderer_name(config.renderer)):
+        changes["renderer"] = RENDERERS.get(overrides.renderer)()
     if overrides.data is not None:
         changes["data"] = overrides.data
     config = dataclasses.replace(config, **changes)

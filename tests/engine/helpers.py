@@ -13,6 +13,7 @@ from dyngs.datamanagers.datamanager import DataConfig
 from dyngs.datamanagers.procedural import ProceduralSceneConfig, demo_path
 from dyngs.engine.trainer import Trainer
 from dyngs.engine.writer import NullWriter
+from dyngs.fields.heads import DeformationHead
 from dyngs.fields.hexplane import HexPlaneConfig
 
 # A small scene and a small field keep each step at a few milliseconds.
@@ -37,10 +38,15 @@ def tiny_trainer(tmp_path: Path, **overrides: Any) -> Trainer:
     return Trainer(tiny_config(**overrides), tmp_path, NullWriter())
 
 
-def output_layer(branch: nn.Module) -> nn.Linear:
-    """The last Linear of a deformation head's branch: its bias is a constant delta."""
-    assert isinstance(branch, nn.Sequential) and isinstance(branch[-1], nn.Linear)
-    return branch[-1]
+def output_layer(head: object, branch: str) -> nn.Linear | None:
+    """The last Linear of the built-in deformation head's branch `branch` (None when that
+    attribute is not deformed): its bias is a constant delta."""
+    assert isinstance(head, DeformationHead)
+    layers = getattr(head, branch)
+    if layers is None:
+        return None
+    assert isinstance(layers, nn.Sequential) and isinstance(layers[-1], nn.Linear)
+    return layers[-1]
 
 
 def field_calls(field: object) -> list[int]:

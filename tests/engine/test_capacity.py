@@ -15,16 +15,16 @@ from dyngs.datamanagers.datamanager import DataConfig, load_scene
 from dyngs.datamanagers.procedural import demo_path
 from dyngs.engine.capacity import (
     BUDGET_LIMITS,
+    data_scale,
     distinct_viewpoints,
     gaussian_budget,
-    hexplane_resolution,
     pixel_footprint,
     resolve_capacity,
 )
 from dyngs.engine.densify import DensifyConfig, DensifyState, plan_refinement
 from dyngs.engine.trainer import Trainer
 from dyngs.engine.writer import NullWriter
-from dyngs.fields.hexplane import HexPlaneConfig
+from dyngs.fields.hexplane import HexPlaneConfig, data_sized_resolution
 from tests.engine.helpers import TINY_SCENE, tiny_config, tiny_trainer
 
 
@@ -35,7 +35,7 @@ def _scene(**changes: Any) -> SceneData:
 def test_finer_images_and_more_timestamps_give_a_finer_grid() -> None:
     coarse, fine = _scene(), _scene(resolution=64, num_times=12)
     assert abs(pixel_footprint(coarse) / pixel_footprint(fine) - 2.0) < 0.05
-    rc, rf = hexplane_resolution(coarse), hexplane_resolution(fine)
+    rc, rf = (data_sized_resolution(data_scale(s)) for s in (coarse, fine))
     for axis in range(3):  # a cell spans the same number of pixels at both resolutions
         assert abs(rf[axis] - 2 * rc[axis]) <= 1, (rc, rf)
     assert (rc[3], rf[3]) == (3, 6)  # one cell per two timestamps
@@ -45,7 +45,7 @@ def test_the_budget_grows_with_pixels_and_viewpoints() -> None:
     small, large = _scene(), _scene(resolution=128)
     many_views = _scene(resolution=128, views_per_time=12)
     assert distinct_viewpoints(many_views) > distinct_viewpoints(large)
-    budgets = [gaussian_budget(s) for s in (small, large, many_views)]
+    budgets = [gaussian_budget(data_scale(s)) for s in (small, large, many_views)]
     assert budgets[0] == BUDGET_LIMITS[0]  # 32² images: the floor
     assert budgets[0] < budgets[1] < budgets[2]
 
@@ -54,9 +54,9 @@ def test_explicit_sizes_are_kept_and_missing_ones_filled() -> None:
     scene = _scene()
     resolved = resolve_capacity(TrainConfig(), scene)
     assert isinstance(resolved.field, HexPlaneConfig)
-    assert resolved.field.resolution == hexplane_resolution(scene)
-    assert resolved.densify.max_gaussians == gaussian_budget(scene)
-    assert resolved.gaussians.max_init_points == gaussian_budget(scene)
+    assert resolved.field.resolution == data_sized_resolution(data_scale(scene))
+    assert resolved.densify.max_gaussians == gaussian_budget(data_scale(scene))
+    assert resolved.gaussians.max_init_points == gaussian_budget(data_scale(scene))
     explicit = TrainConfig(
         field=HexPlaneConfig(resolution=(5, 6, 7, 8)), densify=DensifyConfig(max_gaussians=1234)
     )
@@ -118,8 +118,11 @@ class AlwaysMeasures:
     def __init__(self, inner: Any) -> None:
         self.inner = inner
 
-    def __call__(self, gaussians: Any, camera: Any, background: Any, **_: Any) -> Any:
-        return self.inner(gaussians, camera, background, contribution=True)
+    def __call__(self, gaussians: Any, camera: Any, background: Any) -> Any:
+        return self.inner.with_contribution(gaussians, camera, background)
+
+    def with_contribution(self, gaussians: Any, camera: Any, background: Any) -> Any:
+        return self.inner.with_contribution(gaussians, camera, background)
 
 
 def test_not_measuring_contribution_changes_no_training_step(tmp_path: Path) -> None:

@@ -11,6 +11,7 @@ from dyngs.engine.trainer import Trainer
 from dyngs.engine.writer import NullWriter
 from dyngs.metrics import psnr
 from dyngs.model import GaussianConfig
+from dyngs.renderers.base import ContributionRenderer
 from tests.conftest import shared_scene
 from tests.engine.helpers import field_calls, output_layer, tiny_config, tiny_trainer
 
@@ -45,7 +46,9 @@ def test_static_gaussians_never_query_the_field(tmp_path: Path) -> None:
     trainer = tiny_trainer(tmp_path)
     model = trainer.model
     with torch.no_grad():
-        output_layer(model.head.means).bias.fill_(0.1)  # every dynamic Gaussian moves
+        layer = output_layer(model.head, "means")
+        assert layer is not None
+        layer.bias.fill_(0.1)  # every dynamic Gaussian moves
     model.dynamic[::2] = False
     seen = field_calls(model.field)
     moved = model.at(0.5, 0).means
@@ -108,12 +111,12 @@ def test_importance_is_the_largest_share_of_any_view_of_the_window(tmp_path: Pat
     views = [i for i in range(len(split)) if float(split.times[i]) <= window]
     assert 0 < len(views) < len(split)
     expected = torch.zeros(len(trainer.model.canonical))
+    renderer = trainer.renderer
+    assert isinstance(renderer, ContributionRenderer)
     with torch.no_grad():
         for i in views:
             gaussians = trainer.model.at(float(split.times[i]), trainer.active_sh)
-            out = trainer.renderer(
-                gaussians, split.cameras[i], trainer.background, contribution=True
-            )
+            out = renderer.with_contribution(gaussians, split.cameras[i], trainer.background)
             assert out.contribution is not None
             expected = torch.maximum(expected, out.contribution)
     assert expected.max() > 0.5 > expected.min()  # both sides of the threshold occur

@@ -15,10 +15,10 @@ from dyngs.renderers.base import Guards
 from dyngs.renderers.cpu_reference import (
     CpuReferenceConfig,
     CpuReferenceRenderer,
-    project,
     rasterize,
     zero_below,
 )
+from dyngs.renderers.stages import project
 from dyngs.types import Camera, Gaussians
 from tests.renderers.oracle import render_oracle
 from tests.renderers.scenes import random_camera, random_gaussians, random_scene

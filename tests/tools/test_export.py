@@ -59,9 +59,10 @@ def test_raw_at_is_what_at_draws(tiny_run: Path) -> None:
     model = run.model
     model.dynamic[:] = True  # the tiny run learned no motion: make every Gaussian deform
     with torch.no_grad():
-        for branch in (model.head.means, model.head.quats, model.head.scales):
-            if branch is not None:
-                output_layer(branch).bias.uniform_(-0.1, 0.1)  # a visible deformation
+        for branch in ("means", "quats", "scales"):
+            layer = output_layer(model.head, branch)
+            if layer is not None:
+                layer.bias.uniform_(-0.1, 0.1)  # a visible deformation
     raw = model.raw_at(0.4)
     assert not torch.equal(raw["means"], model.canonical.means)
     sh = torch.cat((raw["sh_dc"], raw["sh_rest"]), 1)

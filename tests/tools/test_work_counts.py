@@ -7,7 +7,7 @@ from pathlib import Path
 
 import torch
 
-from dyngs.renderers import cpu_reference
+from dyngs.renderers import cpu_reference, stages
 from dyngs.tools.common import load_run
 from tests.tools.conftest import load_benchmark
 
@@ -23,7 +23,7 @@ def test_counts_match_the_renderers_binning(tiny_run: Path) -> None:
     with torch.no_grad():
         for view in run.data.views("test"):
             gaussians = run.model.at(view.time, run.sh_degree, deform=run.deform)
-            screen = cpu_reference.project(gaussians, view.camera, renderer.guards)
+            screen = stages.project(gaussians, view.camera, renderer.guards)
             w, h = view.camera.width, view.camera.height
             tile = renderer.config.tile_size or cpu_reference.choose_tile_size(screen, w, h)
             bins = cpu_reference._bin(screen, w, h, tile)
