@@ -23,17 +23,18 @@ from pathlib import Path
 import torch
 
 from dyngs.renderers.base import ContributionRenderer
-from dyngs.tools.common import LoadedRun, load_run, machine_info
+from dyngs.runs import LoadedRun, load_run
+from dyngs.tools.common import machine_info
 
 
 def render_seconds(run: LoadedRun, view, contribution: bool, backward: bool) -> float:  # type: ignore[no-untyped-def]
     renderer = run.renderer
     if contribution and not isinstance(renderer, ContributionRenderer):
         raise SystemExit(f"{run.run_dir}: its renderer does not measure contribution")
-    background = run.data.scene.background.to(run.device, torch.float32)
+    background = run.scene.background.to(run.device, torch.float32)
     started = time.perf_counter()
     with torch.set_grad_enabled(backward):
-        gaussians = run.model.at(view.time, run.sh_degree, deform=run.deform)
+        gaussians = run.model.at(view.time)
         if contribution and isinstance(renderer, ContributionRenderer):
             out = renderer.with_contribution(gaussians, view.camera, background)
         else:
@@ -46,7 +47,7 @@ def render_seconds(run: LoadedRun, view, contribution: bool, backward: bool) -> 
 
 
 def time_run(run: LoadedRun, repeats: int, views: int) -> dict[str, object]:
-    frames = list(run.data.views("train"))[:views]
+    frames = list(run.data().views("train"))[:views]
     modes = [(c, b) for b in (True, False) for c in (True, False)]
     totals: dict[tuple[bool, bool], list[float]] = {mode: [] for mode in modes}
     for frame in frames[:2]:  # warm-up: allocator growth, first-call costs

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from dyngs.renderers import cpu_reference, stages
-from dyngs.tools.common import load_run
+from dyngs.runs import load_run
 
 SIZES = cpu_reference._TILE_SIZES
 
@@ -33,9 +33,9 @@ def measure(run_dir: Path, repeats: int) -> list[dict[str, float]]:
     background = run.scene.background.to(torch.float32)
     frames = []
     with torch.no_grad():
-        for view in list(run.data.views("test"))[::2]:
+        for view in list(run.data().views("test"))[::2]:
             camera = view.camera
-            gaussians = run.model.at(view.time, run.sh_degree, deform=run.deform)
+            gaussians = run.model.at(view.time)
             screen = stages.project(gaussians, camera, run.renderer.guards)
             pairs = cpu_reference.tile_pair_counts(screen, camera.width, camera.height, SIZES)
             chosen = cpu_reference.choose_tile_size(screen, camera.width, camera.height)

@@ -22,10 +22,11 @@ from typing import Any
 
 import torch
 
-from dyngs.cli import expand_argument_files, parse_train_args
+from dyngs.engine import schedules
 from dyngs.engine.trainer import Trainer
 from dyngs.engine.writer import NullWriter
 from dyngs.metrics import psnr
+from dyngs.runs import expand_argument_files, parse_train_args
 
 _spec = importlib.util.spec_from_file_location(
     "psnr_by_time", Path(__file__).with_name("psnr_by_time.py")
@@ -39,11 +40,10 @@ by_time = _psnr_by_time.by_time
 def fit_by_time(trainer: Trainer, bins: int) -> list[float | None]:
     """Mean PSNR of the training views in each of `bins` spans of t, as the model is now."""
     frames = []
-    deform = trainer.deforming(trainer.step)
     with torch.no_grad():
         for view in trainer.data.views("train"):
-            gaussians = trainer.model.at(view.time, trainer.active_sh, deform=deform)
-            rgb = trainer.renderer(gaussians, view.camera, trainer.background).rgb.clamp(0, 1)
+            gaussians = trainer.model.at(view.time)
+            rgb = trainer.renderer(gaussians, view.camera, trainer.data.background).rgb.clamp(0, 1)
             frames.append({"time": view.time, "psnr": float(psnr(rgb, view.image))})
     return by_time(frames, bins)
 
@@ -55,10 +55,10 @@ def track(trainer: Trainer, every: int, bins: int) -> list[dict[str, Any]]:
     while trainer.step < trainer.config.max_iters:
         trainer.train_step(trainer.step)
         trainer.step += 1
-        if trainer.step % every == 0 and trainer.deforming(trainer.step):
+        if trainer.step % every == 0 and schedules.deforming(trainer.config, trainer.step):
             row: dict[str, Any] = {
                 "step": trainer.step,
-                "window": trainer.time_window(trainer.step),
+                "window": schedules.time_window(trainer.config, trainer.step),
                 "gaussians": len(trainer.model.canonical),
                 "psnr_by_time": fit_by_time(trainer, bins),
             }

@@ -27,7 +27,7 @@ import torch
 
 from dyngs.renderers.cpu_reference import CpuReferenceRenderer, choose_tile_size, tile_pair_counts
 from dyngs.renderers.stages import project
-from dyngs.tools.common import LoadedRun, load_run
+from dyngs.runs import LoadedRun, load_run
 
 
 def count_run(run: LoadedRun, split: str) -> dict[str, object]:
@@ -35,11 +35,11 @@ def count_run(run: LoadedRun, split: str) -> dict[str, object]:
     if not isinstance(renderer, CpuReferenceRenderer):
         raise SystemExit(f"{run.run_dir}: counts follow the cpu-reference renderer's binning")
     config = renderer.config
-    deformed = int(run.model.dynamic.sum()) if run.deform else 0
+    deformed = int(run.model.dynamic.sum()) if run.model.deforming else 0
     frames = []
     with torch.no_grad():
-        for view in run.data.views(split):
-            gaussians = run.model.at(view.time, run.sh_degree, deform=run.deform)
+        for view in run.data().views(split):
+            gaussians = run.model.at(view.time)
             camera = view.camera
             screen = project(gaussians, camera, renderer.guards, config.antialiased)
             tile = config.tile_size or choose_tile_size(screen, camera.width, camera.height)

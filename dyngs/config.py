@@ -71,6 +71,9 @@ class LossConfig:
     """Local rigidity: neighbour distances kept between the current and a random time."""
     arap_neighbors: int = 8
     """Canonical nearest neighbours per Gaussian for the rigidity term."""
+    extra: dict[str, float] = dataclasses.field(default_factory=dict)
+    """Extra loss terms by name and weight (`--losses.extra NAME WEIGHT …`), from those an
+    installed package registers in the `dyngs.losses` entry-point group."""
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.dssim <= 1.0:
@@ -82,6 +85,9 @@ class LossConfig:
                 raise ConfigError(f"--losses.{flag} must be ≥ 0, got {value}")
         if self.arap_neighbors < 1:
             raise ConfigError(f"--losses.arap-neighbors must be ≥ 1, got {self.arap_neighbors}")
+        for name, weight in self.extra.items():
+            if not weight >= 0.0:
+                raise ConfigError(f"--losses.extra {name}: weight must be ≥ 0, got {weight}")
 
 
 @dataclass(frozen=True)

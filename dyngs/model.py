@@ -1,27 +1,37 @@
 """The 4D model: canonical Gaussians plus a deformation field and head.
 
-Letters: N Gaussians, K SH coefficients per channel, F field features.
+Letters: N Gaussians, K SH coefficients per channel, F field features, P points.
 
 Raw parameters are unconstrained (log-scales, opacity logits, unnormalised quaternions,
 SH coefficients); `activate` is the one place where they become drawable Gaussians.
+
+The model is self-contained: it is built from its component configs, a scene box and a
+Gaussian count (`DynamicGaussians.build`), and its `state_dict` holds everything that
+decides what it draws (parameters, the static/dynamic flags, the active SH degree,
+whether it deforms yet, the scene box), so `DynamicGaussians.load` rebuilds it from a
+checkpoint without the dataset or an optimizer, and `model.at(t)` needs nothing else.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from jaxtyping import Bool, Float, Int
 from torch import Tensor, nn
 
-from dyngs.fields.base import Field, Head
+from dyngs.fields.base import Field, FieldSpec, Head, HeadSpec
 from dyngs.fields.heads import Deltas
 from dyngs.geometry import normalize_quaternion
 from dyngs.neighbors import knn
 from dyngs.ops import finite_rows
 from dyngs.sh import num_sh_bases, rgb_to_sh0
 from dyngs.types import Gaussians, SceneBox
+
+_EXTRA = "_extra_state"
+"""The state_dict key of `DynamicGaussians.get_extra_state` (PyTorch's convention)."""
 
 # Names of the per-Gaussian parameters, in a fixed order (checkpoints, optimizer groups).
 GAUSSIAN_PARAMS = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
@@ -53,6 +63,20 @@ class GaussianConfig:
 
 def _logit(p: float) -> float:
     return math.log(p / (1 - p))
+
+
+def subsample_points(
+    points: Float[Tensor, "P 3"],
+    colors: Float[Tensor, "P 3"] | None,
+    limit: int | None,
+    generator: torch.Generator,
+) -> tuple[Float[Tensor, "N 3"], Float[Tensor, "N 3"] | None]:
+    """At most `limit` of the points (and their colours), drawn without replacement."""
+    if limit is not None and len(points) > limit:
+        keep = torch.randperm(len(points), generator=generator)[:limit]
+        points = points[keep]
+        colors = None if colors is None else colors[keep]
+    return points, colors
 
 
 class CanonicalGaussians(nn.Module):
@@ -87,27 +111,39 @@ class CanonicalGaussians(nn.Module):
         config: GaussianConfig,
         generator: torch.Generator,
     ) -> CanonicalGaussians:
-        limit = config.max_init_points
-        if limit is not None and len(points) > limit:
-            keep = torch.randperm(len(points), generator=generator)[:limit]
-            points = points[keep]
-            colors = None if colors is None else colors[keep]
-        points = points.float()
+        """Gaussians at the points (subsampled to `config.max_init_points`)."""
+        points, colors = subsample_points(points, colors, config.max_init_points, generator)
         model = cls(len(points), config.sh_degree)
-        k = min(config.init_scale_neighbors, max(len(points) - 1, 1))
-        with torch.no_grad():
-            model.means.copy_(points)
-            model.quats[:, 0] = 1.0
-            if len(points) > 1:
-                neighbors = knn(points, k)
-                dist = (points[:, None, :] - points[neighbors]).norm(dim=-1).mean(dim=-1)
-            else:
-                dist = torch.ones(len(points))
-            model.log_scales.copy_(dist.clamp_min(1e-7).log()[:, None].expand(-1, 3))
-            model.opacity_logits.fill_(_logit(config.init_opacity))
-            rgb = torch.full_like(points, 0.5) if colors is None else colors.float().clamp(0, 1)
-            model.sh_dc.copy_(rgb_to_sh0(rgb)[:, None, :])
+        model.initialize(points, colors, config)
         return model
+
+    @torch.no_grad()
+    def initialize(
+        self,
+        points: Float[Tensor, "N 3"],
+        colors: Float[Tensor, "N 3"] | None,
+        config: GaussianConfig,
+    ) -> None:
+        """Place one Gaussian at each point, as 3D Gaussian Splatting does (Kerbl et al.
+        2023): unrotated, isotropic with the mean distance to its nearest points as scale,
+        `config.init_opacity`, and the point's colour (grey without one)."""
+        if len(points) != len(self):
+            raise ValueError(f"{len(points)} points for {len(self)} Gaussians")
+        points = points.float()
+        k = min(config.init_scale_neighbors, max(len(points) - 1, 1))
+        self.means.copy_(points)
+        self.quats.zero_()
+        self.quats[:, 0] = 1.0
+        if len(points) > 1:
+            neighbors = knn(points, k)
+            dist = (points[:, None, :] - points[neighbors]).norm(dim=-1).mean(dim=-1)
+        else:
+            dist = torch.ones(len(points))
+        self.log_scales.copy_(dist.clamp_min(1e-7).log()[:, None].expand(-1, 3))
+        self.opacity_logits.fill_(_logit(config.init_opacity))
+        rgb = torch.full_like(points, 0.5) if colors is None else colors.float().clamp(0, 1)
+        self.sh_dc.copy_(rgb_to_sh0(rgb)[:, None, :])
+        self.sh_rest.zero_()
 
     def params(self) -> dict[str, nn.Parameter]:
         return {name: getattr(self, name) for name in GAUSSIAN_PARAMS}
@@ -160,24 +196,84 @@ class DynamicGaussians(nn.Module):
     `dynamic` marks the Gaussians that are deformed; the others are drawn from their
     canonical parameters and never query the field (dyngs/engine/motion.py decides which).
     When none is dynamic, the model is a static 3DGS model and the field is never run.
+
+    `active_sh_degree` is the SH degree drawn with (it rises during training) and
+    `deforming` whether the deformation is on (off during the static warm-up); both are
+    saved in the state_dict with the scene box, so `at(t)` draws what training drew.
     """
 
     dynamic: Tensor
     field: Field
 
-    def __init__(
-        self,
-        canonical: CanonicalGaussians,
-        field: Field,
-        head: Head,
-        box: SceneBox,
-    ) -> None:
+    def __init__(self, canonical: CanonicalGaussians, field: Field, head: Head, box: SceneBox):
         super().__init__()
         self.canonical = canonical
         self.field = field
         self.head = head
         self.box = box
         self.register_buffer("dynamic", torch.ones(len(canonical), dtype=torch.bool))
+        self.active_sh_degree = 0
+        self.deforming = True
+
+    @classmethod
+    def build(
+        cls,
+        gaussians: GaussianConfig,
+        field: FieldSpec,
+        head: HeadSpec,
+        box: SceneBox,
+        num: int,
+        generator: torch.Generator | None = None,
+    ) -> DynamicGaussians:
+        """A model of `num` Gaussians at the origin (see `CanonicalGaussians.initialize`),
+        with its field and head built for `box`; random initial values of the field and
+        head come from `generator`."""
+        canonical = CanonicalGaussians(num, gaussians.sh_degree)
+        built_field = field.build(box, generator=generator)
+        built_head = head.build(built_field.out_dim, box, generator=generator)
+        return cls(canonical, built_field, built_head, box)
+
+    @classmethod
+    def load(
+        cls,
+        gaussians: GaussianConfig,
+        field: FieldSpec,
+        head: HeadSpec,
+        state: dict[str, Any],
+    ) -> DynamicGaussians:
+        """The model a `state_dict` describes, built from the configs it was trained with:
+        no dataset, no optimizer. Raises ValueError when the state does not fit them."""
+        extra = state.get(_EXTRA)
+        if not isinstance(extra, dict) or "box" not in extra:
+            raise ValueError("the model state has no scene box (written by dyngs before 0.2)")
+        lower, upper = extra["box"]
+        box = SceneBox(tuple(lower), tuple(upper))
+        num = state["canonical.means"].shape[0]
+        model = cls.build(gaussians, field, head, box, num, torch.Generator().manual_seed(0))
+        model.load_state_dict(state)
+        return model
+
+    def get_extra_state(self) -> dict[str, Any]:
+        return {
+            "active_sh_degree": self.active_sh_degree,
+            "deforming": self.deforming,
+            "box": [list(self.box.lower), list(self.box.upper)],
+        }
+
+    def set_extra_state(self, state: dict[str, Any]) -> None:
+        box = SceneBox(tuple(state["box"][0]), tuple(state["box"][1]))
+        if box != self.box:
+            raise ValueError(f"the state's scene box {box} is not this model's {self.box}")
+        degree = int(state["active_sh_degree"])
+        if not 0 <= degree <= self.canonical.sh_degree:
+            raise ValueError(f"active SH degree {degree} beyond {self.canonical.sh_degree}")
+        self.active_sh_degree = degree
+        self.deforming = bool(state["deforming"])
+
+    @property
+    def deforms(self) -> bool:
+        """Whether drawing runs the field: deformation on, and some Gaussian dynamic."""
+        return self.deforming and self.any_dynamic()
 
     def deltas(
         self, t: float, index: Int[Tensor, " M"] | None = None
@@ -199,10 +295,11 @@ class DynamicGaussians(nn.Module):
         """Share of the Gaussians that are deformed (0 for an empty model)."""
         return float(self.dynamic.float().mean()) if len(self.dynamic) else 0.0
 
-    def raw_at(self, t: float, deform: bool = True) -> dict[str, Tensor]:
+    def raw_at(self, t: float, deform: bool | None = None) -> dict[str, Tensor]:
         """Raw (unactivated) parameters at time t, keyed like GAUSSIAN_PARAMS: the canonical
-        ones plus the head's deltas (the canonical ones alone when `deform` is False).
-        Exports read these; `at` activates them."""
+        ones plus the head's deltas (the canonical ones alone when `deform`, by default
+        the model's `deforming`, is False). Exports read these; `at` activates them."""
+        deform = self.deforming if deform is None else deform
         _check_time(t)
         c = self.canonical
         raw: dict[str, Tensor] = dict(c.params())
@@ -228,12 +325,16 @@ class DynamicGaussians(nn.Module):
             raw["sh_dc"] = add(c.sh_dc, None if d.colors is None else d.colors[:, None, :])
         return raw
 
-    def at(self, t: float, sh_degree: int, deform: bool = True) -> Gaussians:
-        """Drawable Gaussians at time t (canonical ones when `deform` is False)."""
-        raw = self.raw_at(t, deform)
+    def at(
+        self, t: float, *, sh_degree: int | None = None, deform: bool | None = None
+    ) -> Gaussians:
+        """Drawable Gaussians at time t, with the model's active SH degree and deformation
+        unless overridden (`deform=False`: the canonical Gaussians)."""
+        raw = self.raw_at(t, self.deforming if deform is None else deform)
         sh = torch.cat((raw["sh_dc"], raw["sh_rest"]), dim=1)
+        degree = self.active_sh_degree if sh_degree is None else sh_degree
         return activate(
-            raw["means"], raw["quats"], raw["log_scales"], raw["opacity_logits"], sh, sh_degree
+            raw["means"], raw["quats"], raw["log_scales"], raw["opacity_logits"], sh, degree
         )
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):  # type: ignore[no-untyped-def]

@@ -9,10 +9,11 @@ from pathlib import Path
 
 import pytest
 
-from dyngs.cli import main, parse_train_args
+from dyngs.cli import main
 from dyngs.fields.hexplane import HexPlaneConfig
 from dyngs.fields.mlp import MLPFieldConfig
 from dyngs.renderers import CpuReferenceConfig, CudaTileConfig
+from dyngs.runs import parse_train_args
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -9,6 +9,7 @@ from bisect import bisect_left, bisect_right
 from collections.abc import Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 
 import torch
@@ -16,6 +17,7 @@ from jaxtyping import Float
 from torch import Tensor
 
 from dyngs.datamanagers.base import HOST_CACHE_BYTES, LazyImages, SceneData, Split, image_size
+from dyngs.datamanagers.fixed_cameras import FixedCameras
 from dyngs.datamanagers.formats import FORMATS
 from dyngs.datamanagers.procedural import demo_path
 from dyngs.datamanagers.progress import report
@@ -211,6 +213,12 @@ class DataManager:
         self._by_time = sorted(range(len(train_times)), key=train_times.__getitem__)
         self._sorted_times = [train_times[i] for i in self._by_time]
         self._frontier_draws = 0
+
+    @cached_property
+    def fixed_cameras(self) -> FixedCameras | None:
+        """The training views' fixed cameras and their temporal medians (None without any):
+        they depend on the images only, so they are read once, when first asked for."""
+        return FixedCameras.of(self.scene.train)
 
     @property
     def num_train(self) -> int:

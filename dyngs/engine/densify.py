@@ -199,26 +199,6 @@ def accumulate(
             state.pull_norm += pull.norm(dim=-1)
 
 
-def is_refine_step(config: DensifyConfig, step: int, max_iters: int) -> bool:
-    stop = config.refine_stop * max_iters
-    return config.refine_start <= step <= stop and step % config.refine_every == 0 and step > 0
-
-
-def budget_at(config: DensifyConfig, step: int, max_iters: int) -> int:
-    """The Gaussian cap at `step`: a quarter of the budget when densification starts, growing
-    linearly to all of it by the end of the densification window."""
-    if config.max_gaussians is None:
-        return 2**62
-    stop = config.refine_stop * max_iters
-    progress = (step - config.refine_start) / max(stop - config.refine_start, 1)
-    return int(config.max_gaussians * (0.25 + 0.75 * min(max(progress, 0.0), 1.0)))
-
-
-def is_reset_step(config: DensifyConfig, step: int, max_iters: int) -> bool:
-    every = config.reset_opacity_every
-    return every > 0 and step > 0 and step % every == 0 and step <= config.refine_stop * max_iters
-
-
 def plan_refinement(
     config: DensifyConfig,
     model: DynamicGaussians,
@@ -226,9 +206,10 @@ def plan_refinement(
     step: int,
     extent: float,
     generator: torch.Generator | None = None,
-    max_iters: int = 0,
+    budget: int | None = None,
 ) -> tuple[TopologyChange, dict[str, Tensor]] | None:
-    """Decide clones, splits and prunes; returns the change and the new raw parameters."""
+    """Decide clones, splits and prunes; returns the change and the new raw parameters.
+    Growth stops at `budget` Gaussians (`schedules.budget_at`; None: no cap)."""
     c = model.canonical
     with torch.no_grad():
         n = len(c)
@@ -242,7 +223,7 @@ def plan_refinement(
         prune |= ~c.finite_rows()
         grow = (avg >= config.grad_threshold) & ~prune
         # Respect the budget: each clone adds one, each split adds children - 1.
-        room = budget_at(config, step, max_iters) - (n - int(prune.sum()))
+        room = (2**62 if budget is None else budget) - (n - int(prune.sum()))
         if room <= 0:
             grow[:] = False
         elif int(grow.sum()) > room // max(config.split_children - 1, 1):

@@ -57,8 +57,6 @@ def evaluate(
     renderer: Renderer,
     data: DataManager,
     split: str,
-    sh_degree: int,
-    deform: bool,
     image_dir: Path | None,
     device: torch.device,
     console: Console | None = None,
@@ -81,12 +79,12 @@ def evaluate(
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
     for _ in range(warmup if views else 0):
-        renderer(model.at(views[0].time, sh_degree, deform=deform), views[0].camera, background)
+        renderer(model.at(views[0].time), views[0].camera, background)
     timings: list[tuple[float, float]] = []
     for view in views:
         _sync(device)
         started = time.perf_counter()
-        gaussians = model.at(view.time, sh_degree, deform=deform)
+        gaussians = model.at(view.time)
         _sync(device)
         deformed = time.perf_counter()
         renderer(gaussians, view.camera, background)
@@ -98,7 +96,7 @@ def evaluate(
     with Progress(console=console or Console(), transient=True) as progress:
         task = progress.add_task(f"evaluate {split}", total=len(views))
         for i, (view, (render_ms, deformation_ms)) in enumerate(zip(views, timings, strict=True)):
-            out = renderer(model.at(view.time, sh_degree, deform=deform), view.camera, background)
+            out = renderer(model.at(view.time), view.camera, background)
             rgb = out.rgb.clamp(0, 1)
             perceptual: float | None = None
             if lpips is not None:

@@ -249,10 +249,11 @@ class FixedCameraMotion:
         return (votes > 0.5 * seen) | (seen == 0)
 
 
-def model_bytes(model: DynamicGaussians, sh_degree: int) -> int:
-    """Bytes a stored model needs: the Gaussians' parameters (SH bands in use only) and,
-    when any Gaussian is dynamic, the field and head."""
+def model_bytes(model: DynamicGaussians, sh_degree: int | None = None) -> int:
+    """Bytes a stored model needs: the Gaussians' parameters (SH bands up to `sh_degree`,
+    by default the active degree) and, when any Gaussian is dynamic, the field and head."""
     c = model.canonical
+    sh_degree = model.active_sh_degree if sh_degree is None else sh_degree
     floats = 3 + 4 + 3 + 1 + 3 * (sh_degree + 1) ** 2  # mean, quaternion, scale, opacity, SH
     total = len(c) * floats * c.means.element_size() + math.ceil(len(c) / 8)  # + dynamic bits
     if bool(model.dynamic.any()):

@@ -2,9 +2,6 @@
 and `dyngs-bench`, which trains and compares a sweep of configs.
 
 Each is a tyro CLI over a frozen config dataclass (`EvalConfig`, …) with a `run_*`
-function that does the work, so they can be called from Python as well.
+function that does the work, so they can be called from Python as well. Run folders are
+loaded by `dyngs.runs.load_run`.
 """
-
-from dyngs.tools.common import LoadedRun, RunOverrides, load_run
-
-__all__ = ["LoadedRun", "RunOverrides", "load_run"]

@@ -54,7 +54,6 @@ import tyro
 from rich.console import Console
 from rich.table import Table
 
-from dyngs.cli import parse_train_args, run_training
 from dyngs.config import TrainConfig
 from dyngs.configio import load_config
 from dyngs.engine.trainer import CHECKPOINT_NAME
@@ -63,6 +62,7 @@ from dyngs.fields.hexplane import DEFAULT_RESOLUTION, HexPlaneConfig
 from dyngs.fields.mlp import MLPFieldConfig
 from dyngs.io import write_json
 from dyngs.renderers import renderer_name
+from dyngs.runs import parse_train_args, run_training
 from dyngs.tools.common import run_tool
 
 SUBCOMMAND_KEYS = ("field", "renderer")

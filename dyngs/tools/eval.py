@@ -23,7 +23,8 @@ from dyngs.engine.motion import model_bytes
 from dyngs.errors import ConfigError
 from dyngs.io import write_json
 from dyngs.renderers import renderer_name
-from dyngs.tools.common import LoadedRun, RunOverrides, load_run, run_tool
+from dyngs.runs import LoadedRun, RunOverrides, load_run
+from dyngs.tools.common import run_tool
 
 Split = Literal["test", "val", "train"]
 
@@ -62,10 +63,8 @@ def evaluate_run(
     metrics = evaluate(
         run.model,
         run.renderer,
-        run.data,
+        run.data(),
         split,
-        sh_degree=run.sh_degree,
-        deform=run.deform,
         image_dir=image_dir,
         device=run.device,
         console=console,
@@ -75,12 +74,12 @@ def evaluate_run(
         "run_dir": str(run.run_dir),
         "method": run.config.method,
         "num_gaussians": len(run.model.canonical),
-        "dynamic_fraction": run.model.dynamic_fraction() if run.deform else 0.0,
-        "model_bytes": model_bytes(run.model, run.sh_degree),
+        "dynamic_fraction": run.model.dynamic_fraction() if run.model.deforming else 0.0,
+        "model_bytes": model_bytes(run.model),
         "train_seconds": run.train_seconds,
         "iterations": run.step,
-        "sh_degree": run.sh_degree,
-        "deform": run.deform,
+        "sh_degree": run.model.active_sh_degree,
+        "deform": run.model.deforming,
         "renderer": renderer_name(run.config.renderer),
         "device": str(run.device),
         "cpu_threads": torch.get_num_threads(),  # render_ms depends on it on CPU
@@ -116,7 +115,7 @@ def eval_table(metrics: dict[str, Any]) -> Table:
 def run_eval(config: EvalConfig, console: Console | None = None) -> dict[str, Any]:
     """Evaluate `config.load_dir` on its split; returns what was written to the JSON."""
     console = console or Console()
-    run = load_run(config.load_dir, overrides=config.run, console=console)
+    run = load_run(config.load_dir, overrides=config.run)
     image_dir = None
     if config.save_images:
         image_dir = config.image_dir or run.run_dir / f"eval_{config.split}"

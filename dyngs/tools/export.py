@@ -28,8 +28,9 @@ from torch import Tensor
 from dyngs.errors import ConfigError, DatasetError
 from dyngs.geometry import normalize_quaternion
 from dyngs.ply import read_ply, write_ply
+from dyngs.runs import LoadedRun, RunOverrides, load_run
 from dyngs.sh import num_sh_bases
-from dyngs.tools.common import LoadedRun, RunOverrides, load_run, run_tool
+from dyngs.tools.common import run_tool
 
 NORMALS = ("nx", "ny", "nz")
 
@@ -120,10 +121,10 @@ def export_raw(run: LoadedRun, t: float, sh_degree: int | None = None) -> dict[s
     degree = full if sh_degree is None else sh_degree
     if not 0 <= degree <= full:
         raise ConfigError(f"--sh-degree must be in 0..{full} for this run, got {degree}")
-    raw = {k: v.detach().clone() for k, v in run.model.raw_at(t, deform=run.deform).items()}
+    raw = {k: v.detach().clone() for k, v in run.model.raw_at(t).items()}
     raw["quats"] = unit_quaternions(raw["quats"])
     rest = raw["sh_rest"][:, : num_sh_bases(degree) - 1]
-    rest[:, max(num_sh_bases(run.sh_degree) - 1, 0) :] = 0.0
+    rest[:, max(num_sh_bases(run.model.active_sh_degree) - 1, 0) :] = 0.0
     raw["sh_rest"] = rest
     return raw
 
@@ -153,7 +154,7 @@ class ExportConfig:
 def run_export(config: ExportConfig, console: Console | None = None) -> list[Path]:
     """Write the PLY file(s); returns their paths."""
     console = console or Console()
-    run = load_run(config.load_dir, overrides=config.run, console=console)
+    run = load_run(config.load_dir, overrides=config.run)
     export = run.run_dir / "export"
     written: list[Path] = []
     if config.time is not None:

@@ -25,10 +25,11 @@ from jaxtyping import Float
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-from dyngs.datamanagers.base import SceneData
+from dyngs.datamanagers.scene_info import SceneInfo
 from dyngs.engine.writer import to_uint8
 from dyngs.errors import ConfigError, UserError
-from dyngs.tools.common import LoadedRun, RunOverrides, load_run, run_tool
+from dyngs.runs import LoadedRun, RunOverrides, load_run
+from dyngs.tools.common import run_tool
 from dyngs.types import Camera
 
 Trajectory = Literal["test", "spiral", "fixed"]
@@ -71,7 +72,7 @@ def world_up(mean_up: Float[np.ndarray, " 3"]) -> Float[np.ndarray, " 3"]:
 
 
 def spiral_cameras(
-    scene: SceneData, frames: int, turns: float = 1.0, swing_degrees: float = 15.0
+    scene: SceneInfo, frames: int, turns: float = 1.0, swing_degrees: float = 15.0
 ) -> list[Camera]:
     """`frames` cameras circling the scene-box centre `turns` times.
 
@@ -204,7 +205,7 @@ def camera_path(run: LoadedRun, config: RenderConfig) -> list[tuple[Camera, floa
 def run_render(config: RenderConfig, console: Console | None = None) -> Path:
     """Render the video; returns its path."""
     console = console or Console()
-    run = load_run(config.load_dir, overrides=config.run, console=console)
+    run = load_run(config.load_dir, overrides=config.run)
     frames = [
         (resize_camera(cam, config.scale, config.width, config.height).to(run.device), t)
         for cam, t in camera_path(run, config)
@@ -243,7 +244,7 @@ def run_render(config: RenderConfig, console: Console | None = None) -> Path:
         with Progress(*columns, console=console) as progress:
             task = progress.add_task("render", total=len(frames))
             for camera, t in frames:
-                gaussians = run.model.at(t, run.sh_degree, deform=run.deform)
+                gaussians = run.model.at(t)
                 rgb = run.renderer(gaussians, camera, background).rgb
                 writer.write(cv2.cvtColor(to_uint8(rgb), cv2.COLOR_RGB2BGR))
                 progress.advance(task)

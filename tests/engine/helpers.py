@@ -6,6 +6,7 @@ import dataclasses
 from pathlib import Path
 from typing import Any
 
+import torch
 from torch import nn
 
 from dyngs.config import TrainConfig
@@ -55,3 +56,12 @@ def field_calls(field: object) -> list[int]:
     calls: list[int] = []
     field.register_forward_hook(lambda module, args, out: calls.append(args[0].shape[0]))
     return calls
+
+
+def assert_same_state(a: dict[str, Any], b: dict[str, Any], context: str = "") -> None:
+    """Two state_dicts hold the same keys and, bit for bit, the same values (tensors
+    compared with torch.equal, the model's extra state with ==)."""
+    assert a.keys() == b.keys(), context
+    for key, value in a.items():
+        same = torch.equal(value, b[key]) if isinstance(value, torch.Tensor) else value == b[key]
+        assert same, f"{key} differs {context}".strip()

@@ -25,7 +25,7 @@ from dyngs.engine.densify import DensifyConfig, DensifyState, plan_refinement
 from dyngs.engine.trainer import Trainer
 from dyngs.engine.writer import NullWriter
 from dyngs.fields.hexplane import HexPlaneConfig, data_sized_resolution
-from tests.engine.helpers import TINY_SCENE, tiny_config, tiny_trainer
+from tests.engine.helpers import TINY_SCENE, assert_same_state, tiny_config, tiny_trainer
 
 
 def _scene(**changes: Any) -> SceneData:
@@ -85,10 +85,10 @@ def test_gaussians_that_make_almost_nothing_of_any_view_are_pruned(tmp_path: Pat
 def test_with_importance_views_0_each_step_measures_importance(tmp_path: Path) -> None:
     densify = dataclasses.replace(tiny_config().densify, importance_views=0)
     trainer = tiny_trainer(tmp_path, densify=densify)
-    assert trainer.prunes_by_drawn_views()
+    assert trainer.lifecycle.measures_each_step(trainer.renderer)
     stats = trainer.train_step(0)
-    importance = trainer.densify_state.importance
-    seen = trainer.densify_state.count > 0
+    importance = trainer.lifecycle.state.importance
+    seen = trainer.lifecycle.state.count > 0
     assert bool(seen.any())
     # After one view, each Gaussian's importance is its share of that view's coverage.
     total = float(stats.out.alpha.detach().sum())
@@ -106,10 +106,10 @@ def test_otherwise_no_training_step_measures_importance(
     the importance left in the state is +inf, "never prune by it", until measured."""
     densify = dataclasses.replace(tiny_config().densify, **change)
     trainer = tiny_trainer(tmp_path, densify=densify)
-    assert not trainer.prunes_by_drawn_views()
+    assert not trainer.lifecycle.measures_each_step(trainer.renderer)
     stats = trainer.train_step(0)
     assert stats.out.contribution is None
-    assert bool(torch.isinf(trainer.densify_state.importance).all())
+    assert bool(torch.isinf(trainer.lifecycle.state.importance).all())
 
 
 class AlwaysMeasures:
@@ -139,14 +139,12 @@ def test_not_measuring_contribution_changes_no_training_step(tmp_path: Path) -> 
             trainer.step = step + 1
         states.append(trainer.model.state_dict())
     skips, measures = states
-    assert skips.keys() == measures.keys()
-    for key, value in skips.items():
-        assert torch.equal(value, measures[key]), key
+    assert_same_state(skips, measures)
 
 
 def test_a_run_too_short_to_densify_says_so(tmp_path: Path) -> None:
-    def warning(max_iters: int) -> str | None:
-        return Trainer(tiny_config(max_iters=max_iters), tmp_path, NullWriter()).schedule_warning()
+    def notes(max_iters: int) -> list[str]:
+        return Trainer(tiny_config(max_iters=max_iters), tmp_path, NullWriter()).notes()
 
-    assert "no densification in this run" in (warning(500) or "")  # window 300 … 250: empty
-    assert warning(1000) is None  # window 300 … 500
+    assert "no densification in this run" in notes(500)[0]  # window 300 … 250: empty
+    assert notes(1000) == []  # window 300 … 500

@@ -5,10 +5,11 @@ from pathlib import Path
 import pytest
 import torch
 
-from dyngs.engine.densify import DensifyConfig, apply_topology, budget_at, plan_refinement
+from dyngs.engine import schedules
+from dyngs.engine.densify import DensifyConfig, apply_topology, plan_refinement
 from dyngs.errors import ConfigError
 from dyngs.model import GAUSSIAN_PARAMS
-from tests.engine.helpers import tiny_trainer
+from tests.engine.helpers import tiny_config, tiny_trainer
 
 
 def _train_a_little(tmp_path: Path):  # type: ignore[no-untyped-def]
@@ -20,7 +21,7 @@ def _train_a_little(tmp_path: Path):  # type: ignore[no-untyped-def]
 
 def test_clone_split_prune_keep_every_per_gaussian_tensor_in_step(tmp_path: Path) -> None:
     trainer = _train_a_little(tmp_path)
-    model, state = trainer.model, trainer.densify_state
+    model, state = trainer.model, trainer.lifecycle.state
     n = len(model.canonical)
     # Fabricate gradient statistics: the first third clones or splits, one is transparent.
     state.grad_sum[: n // 3] = 1.0
@@ -50,29 +51,34 @@ def test_clone_split_prune_keep_every_per_gaussian_tensor_in_step(tmp_path: Path
         children, torch.full_like(children, 5.0 - torch.log(torch.tensor(1.6)).item())
     )
     # Training goes on with the new set.
-    trainer.densify_state = type(state).zeros(m, trainer.device)
+    trainer.lifecycle.state = type(state).zeros(m, trainer.device)
     trainer.train_step(4)
 
 
 def test_budget_caps_growth(tmp_path: Path) -> None:
     trainer = _train_a_little(tmp_path)
-    model, state = trainer.model, trainer.densify_state
+    model, state = trainer.model, trainer.lifecycle.state
     n = len(model.canonical)
     state.grad_sum[:] = torch.rand(n, generator=torch.Generator().manual_seed(0)) * 1e-2
     state.count[:] = 1.0
     config = DensifyConfig(
         max_gaussians=n + 10, refine_start=0, refine_stop=0.5, prune_importance=0.0
     )
-    plan = plan_refinement(config, model, state, step=1000, extent=trainer.extent, max_iters=1000)
+    budget = schedules.budget_at(tiny_config(max_iters=1000, densify=config), 1000)
+    plan = plan_refinement(config, model, state, step=1000, extent=trainer.extent, budget=budget)
     assert plan is not None
     assert n < len(plan[0].source) <= n + 10
 
 
 def test_budget_grows_on_a_schedule() -> None:
-    config = DensifyConfig(max_gaussians=1000, refine_start=100, refine_stop=0.5)
-    caps = [budget_at(config, step, max_iters=1100) for step in (0, 100, 325, 550, 1000)]
+    config = tiny_config(
+        max_iters=1100,
+        densify=DensifyConfig(max_gaussians=1000, refine_start=100, refine_stop=0.5),
+    )
+    caps = [schedules.budget_at(config, step) for step in (0, 100, 325, 550, 1000)]
     assert caps == [250, 250, 625, 1000, 1000]
-    assert budget_at(DensifyConfig(max_gaussians=None), 10, 100) > 10**12
+    unbounded = tiny_config(max_iters=100, densify=DensifyConfig(max_gaussians=None))
+    assert schedules.budget_at(unbounded, 10) > 10**12
 
 
 def test_importance_views_must_not_be_negative() -> None:

@@ -128,7 +128,7 @@ def test_a_static_gaussian_where_the_field_moves_becomes_dynamic() -> None:
     assert model.dynamic.tolist() == [False, True]
     # It moves from now on, about the place where it stood still.
     with torch.no_grad():
-        drawn = torch.stack([model.at(t, 0).means for t in times])
+        drawn = torch.stack([model.at(t, sh_degree=0).means for t in times])
     assert torch.allclose(drawn.mean(0), before, atol=1e-6)
     assert float((drawn[1, 1] - drawn[0, 1]).norm()) == pytest.approx(1.0)
 
@@ -149,7 +149,7 @@ def test_flags_follow_densification_and_survive_resume(tmp_path: Path) -> None:
     trainer = tiny_trainer(tmp_path)
     for step in range(3):
         trainer.train_step(step)
-    model, state = trainer.model, trainer.densify_state
+    model, state = trainer.model, trainer.lifecycle.state
     n = len(model.canonical)
     model.dynamic[: n // 2] = False
     flags = model.dynamic.clone()
@@ -159,7 +159,7 @@ def test_flags_follow_densification_and_survive_resume(tmp_path: Path) -> None:
     assert plan is not None
     apply_topology(model, trainer.optimizer, *plan)
     assert torch.equal(model.dynamic, flags[plan[0].source])  # children inherit
-    trainer.densify_state = type(state).zeros(len(model.canonical), trainer.device)
+    trainer.lifecycle.state = type(state).zeros(len(model.canonical), trainer.device)
     trainer.save()
 
     resumed = Trainer(trainer.config, tmp_path, NullWriter())
@@ -184,7 +184,7 @@ def test_a_still_scene_trains_as_a_static_scene(tmp_path: Path) -> None:
     assert float(static.float().mean()) >= 0.95
     assert metrics["dynamic_fraction"] <= 0.05
     calls = field_calls(trainer.model.field)
-    trainer.model.at(0.5, 0)
+    trainer.model.at(0.5, sh_degree=0)
     assert metrics["static_scene"] is (not trainer.model.any_dynamic())
     assert calls == ([] if metrics["static_scene"] else [int(trainer.model.dynamic.sum())])
 
@@ -199,8 +199,8 @@ def test_the_rig_splits_the_moving_objects_from_the_still_background(tmp_path: P
     assert bool(trainer.model.dynamic.all())
     # No gradient statistics yet (one view's pull is trivially coherent): pixels decide.
     n = len(trainer.model.canonical)
-    trainer.densify_state = type(trainer.densify_state).zeros(n, trainer.device)
-    trainer.revisit_motion()
+    trainer.lifecycle.state = type(trainer.lifecycle.state).zeros(n, trainer.device)
+    trainer.lifecycle.revisit_motion(trainer.step)
 
     model = trainer.model
     moving = _on_moving_object(model.canonical.means.detach(), RIG)
@@ -209,7 +209,7 @@ def test_the_rig_splits_the_moving_objects_from_the_still_background(tmp_path: P
     assert float(dynamic[~moving].float().mean()) <= 0.1
     # Only the dynamic ones query the field.
     calls = field_calls(model.field)
-    model.at(0.5, 0)
+    model.at(0.5, sh_degree=0)
     assert calls == [int(dynamic.sum())]
 
 
@@ -224,10 +224,12 @@ def test_the_rig_promotes_what_its_pixels_see_move_at_every_revisit(tmp_path: Pa
     model.dynamic[:] = False
     moving = _on_moving_object(model.canonical.means.detach(), RIG)
 
-    trainer.revisit_motion()
+    trainer.lifecycle.revisit_motion(trainer.step)
     assert float(model.dynamic[moving].float().mean()) >= 0.98
     model.dynamic[:] = False
-    trainer.revisit_motion(final=True)  # the last word is measured motion's alone
+    trainer.lifecycle.revisit_motion(
+        trainer.step, final=True
+    )  # the last word is measured motion's alone
     assert not model.any_dynamic()
 
 
@@ -247,7 +249,7 @@ def test_the_field_is_cut_to_the_dynamic_gaussians_and_a_run_resumes(tmp_path: P
         before = model.deltas(0.3)[0].means.clone()
     bytes_before = model_bytes(model, 0)
 
-    trainer.crop_field()
+    trainer.lifecycle.crop_field(trainer.optimizer)
 
     with torch.no_grad():
         assert torch.allclose(model.deltas(0.3)[0].means, before, rtol=1e-5, atol=1e-6)

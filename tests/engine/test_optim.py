@@ -7,6 +7,7 @@ import pytest
 import torch
 from torch import nn
 
+from dyngs.engine import schedules
 from dyngs.engine.optim import OptimConfig, replace_rows, set_learning_rates
 from tests.engine.helpers import tiny_trainer
 
@@ -48,11 +49,14 @@ def test_deformation_rates_hold_until_the_time_window_is_full(tmp_path: Path) ->
     trainer = tiny_trainer(tmp_path, max_iters=100, warmup_iters=10, time_ramp=0.4, optim=held)
     groups = {g["name"]: g for g in trainer.optimizer.param_groups}
     means, grid, network = groups["means"], groups["grid"], groups["network"]
-    assert trainer.window_full_step() == 50
-    assert trainer.time_window(49) < 1.0 and trainer.time_window(50) == 1.0
+    assert schedules.window_full_step(trainer.config) == 50
+    assert (
+        schedules.time_window(trainer.config, 49) < 1.0
+        and schedules.time_window(trainer.config, 50) == 1.0
+    )
 
     def rates_at(step: int) -> tuple[float, float, float]:
-        set_learning_rates(trainer.optimizer, *trainer.learning_progress(step))
+        set_learning_rates(trainer.optimizer, *schedules.learning_progress(trainer.config, step))
         return means["lr"], grid["lr"], network["lr"]
 
     for step in (0, 30, 50):  # the Gaussians decay from step 0, the deformation holds
@@ -68,7 +72,7 @@ def test_deformation_rates_hold_until_the_time_window_is_full(tmp_path: Path) ->
 
     # By default every group decays over the whole run (the schedule of 4DGaussians).
     plain = tiny_trainer(tmp_path / "plain", max_iters=100, warmup_iters=10, time_ramp=0.4)
-    set_learning_rates(plain.optimizer, *plain.learning_progress(30))
+    set_learning_rates(plain.optimizer, *schedules.learning_progress(plain.config, 30))
     plain_grid = next(g for g in plain.optimizer.param_groups if g["name"] == "grid")
     assert plain_grid["lr"] == pytest.approx(
         plain_grid["lr_start"] * (plain_grid["lr_end"] / plain_grid["lr_start"]) ** 0.3

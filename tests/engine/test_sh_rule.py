@@ -64,19 +64,19 @@ def test_the_degree_rises_only_on_evidence(tmp_path: Path) -> None:
     config = GaussianConfig(sh_degree=2, sh_degree_interval=10)
     trainer = tiny_trainer(tmp_path, gaussians=config)
     n = len(trainer.model.canonical)
-    state = trainer.densify_state
+    state = trainer.lifecycle.state
 
     state.sh_pull[:, :3] = torch.randn(n, 3, 3, generator=torch.Generator().manual_seed(0))
     state.sh_pull_norm[:] = 10 * state.sh_pull[:, :3].flatten(1).norm(dim=-1)  # incoherent
-    trainer.consider_sh_degree(10)
-    assert trainer.active_sh == 0
+    trainer.lifecycle.consider_sh_degree(10)
+    assert trainer.model.active_sh_degree == 0
 
     state.sh_pull_norm[:] = state.sh_pull[:, :3].flatten(1).norm(dim=-1)  # perfectly coherent
-    trainer.consider_sh_degree(15)  # not an SH interval
-    assert trainer.active_sh == 0
-    trainer.consider_sh_degree(20)
-    assert trainer.active_sh == 1
-    assert trainer.probe_degree() == 2
+    trainer.lifecycle.consider_sh_degree(15)  # not an SH interval
+    assert trainer.model.active_sh_degree == 0
+    trainer.lifecycle.consider_sh_degree(20)
+    assert trainer.model.active_sh_degree == 1
+    assert trainer.lifecycle.probe_degree() == 2
 
 
 def test_training_keeps_the_probed_band_at_zero(tmp_path: Path) -> None:
@@ -84,6 +84,6 @@ def test_training_keeps_the_probed_band_at_zero(tmp_path: Path) -> None:
     for step in range(6):
         trainer.train_step(step)
     sh_rest = trainer.model.canonical.sh_rest
-    assert trainer.active_sh == 0 and trainer.probe_degree() == 1
+    assert trainer.model.active_sh_degree == 0 and trainer.lifecycle.probe_degree() == 1
     assert not bool(sh_rest[:, band_rows(1)].any())
-    assert float(trainer.densify_state.sh_pull_norm.sum()) > 0
+    assert float(trainer.lifecycle.state.sh_pull_norm.sum()) > 0

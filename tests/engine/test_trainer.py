@@ -7,13 +7,21 @@ import pytest
 import torch
 
 from dyngs.datamanagers.datamanager import DataConfig, TrainBatch
+from dyngs.engine import schedules
+from dyngs.engine.densify import DensifyConfig
 from dyngs.engine.trainer import Trainer
 from dyngs.engine.writer import NullWriter
 from dyngs.metrics import psnr
 from dyngs.model import GaussianConfig
 from dyngs.renderers.base import ContributionRenderer
 from tests.conftest import shared_scene
-from tests.engine.helpers import field_calls, output_layer, tiny_config, tiny_trainer
+from tests.engine.helpers import (
+    assert_same_state,
+    field_calls,
+    output_layer,
+    tiny_config,
+    tiny_trainer,
+)
 
 
 def test_gradients_reach_every_parameter_group(tmp_path: Path) -> None:
@@ -36,8 +44,8 @@ def test_gradients_reach_every_parameter_group(tmp_path: Path) -> None:
 
 def test_step_zero_renders_the_canonical_scene(tmp_path: Path) -> None:
     trainer = tiny_trainer(tmp_path)
-    deformed = trainer.model.at(0.37, 0, deform=True)
-    canonical = trainer.model.at(0.37, 0, deform=False)
+    deformed = trainer.model.at(0.37, sh_degree=0, deform=True)
+    canonical = trainer.model.at(0.37, sh_degree=0, deform=False)
     for name in ("means", "quats", "scales", "opacities", "colors"):
         assert torch.equal(getattr(deformed, name), getattr(canonical, name)), name
 
@@ -51,7 +59,7 @@ def test_static_gaussians_never_query_the_field(tmp_path: Path) -> None:
         layer.bias.fill_(0.1)  # every dynamic Gaussian moves
     model.dynamic[::2] = False
     seen = field_calls(model.field)
-    moved = model.at(0.5, 0).means
+    moved = model.at(0.5, sh_degree=0, deform=True).means
     assert seen == [int(model.dynamic.sum())]
     still = model.canonical.means
     assert torch.equal(moved[~model.dynamic], still[~model.dynamic])
@@ -66,7 +74,7 @@ def test_frontier_steps_train_on_the_newest_times_of_the_ramp(
     trainer = tiny_trainer(
         tmp_path, max_iters=40, warmup_iters=2, time_ramp=0.5, frontier_share=share
     )
-    frontier = [s for s in range(40) if trainer.is_frontier_step(s)]
+    frontier = [s for s in range(40) if schedules.is_frontier_step(trainer.config, s)]
     assert all(2 <= s < 22 for s in frontier)
     assert len(frontier) == round(20 * share)  # spread evenly over the ramp's 20 steps
     if share != 0.5:
@@ -106,7 +114,7 @@ def test_importance_is_the_largest_share_of_any_view_of_the_window(tmp_path: Pat
     t ≤ window."""
     trainer = tiny_trainer(tmp_path, max_iters=40, warmup_iters=2, time_ramp=0.5)
     step = 12  # the window is part-way open
-    window = trainer.time_window(step)
+    window = schedules.time_window(trainer.config, step)
     split = trainer.data.scene.train
     views = [i for i in range(len(split)) if float(split.times[i]) <= window]
     assert 0 < len(views) < len(split)
@@ -115,12 +123,14 @@ def test_importance_is_the_largest_share_of_any_view_of_the_window(tmp_path: Pat
     assert isinstance(renderer, ContributionRenderer)
     with torch.no_grad():
         for i in views:
-            gaussians = trainer.model.at(float(split.times[i]), trainer.active_sh)
-            out = renderer.with_contribution(gaussians, split.cameras[i], trainer.background)
+            gaussians = trainer.model.at(float(split.times[i]))
+            out = renderer.with_contribution(gaussians, split.cameras[i], trainer.data.background)
             assert out.contribution is not None
             expected = torch.maximum(expected, out.contribution)
     assert expected.max() > 0.5 > expected.min()  # both sides of the threshold occur
-    torch.testing.assert_close(trainer.measure_importance(step), expected, rtol=0, atol=1e-6)
+    torch.testing.assert_close(
+        trainer.lifecycle.measure_importance(step, trainer.renderer), expected, rtol=0, atol=1e-6
+    )
 
 
 @pytest.mark.parametrize("views", [0, 100])
@@ -130,22 +140,21 @@ def test_refinement_prunes_by_the_measured_importance(
     """With --densify.importance-views > 0 a refinement prunes exactly the Gaussians the
     measure finds weak, whatever was drawn since the last one; with 0 it keeps the
     importance gathered from the drawn views."""
-    trainer = tiny_trainer(tmp_path, max_iters=40)
-    densify = dataclasses.replace(
-        trainer.config.densify, refine_start=0, refine_every=10, importance_views=views
-    )
-    trainer.config = dataclasses.replace(trainer.config, densify=densify)
+    densify = DensifyConfig(refine_start=0, refine_every=10, importance_views=views)
+    trainer = tiny_trainer(tmp_path, max_iters=40, densify=densify)
     n = len(trainer.model.canonical)
     weak = torch.zeros(n, dtype=torch.bool)
     weak[::3] = True
     measured = torch.where(weak, 0.1, 5.0)
-    monkeypatch.setattr(trainer, "measure_importance", lambda step: measured.clone())
-    state = trainer.densify_state
+    monkeypatch.setattr(
+        trainer.lifecycle, "measure_importance", lambda step, renderer: measured.clone()
+    )
+    state = trainer.lifecycle.state
     state.count.fill_(1)  # every Gaussian was seen; no gradient asks for growth
     drawn = torch.where(weak, 5.0, 0.1)  # what the drawn views said: the opposite
     state.importance.copy_(drawn)
     before = trainer.model.canonical.means.detach().clone()
-    trainer.refine(10)
+    trainer.lifecycle.refine(10, trainer.optimizer, trainer.renderer)
     pruned = weak if views > 0 else drawn < densify.prune_importance
     assert torch.equal(trainer.model.canonical.means.detach(), before[~pruned])
 
@@ -169,10 +178,7 @@ def test_resume_is_bit_identical_on_cpu(tmp_path: Path) -> None:
     for step in range(6, 16):
         resumed.train_step(step)
 
-    a, b = straight.model.state_dict(), resumed.model.state_dict()
-    assert a.keys() == b.keys()
-    for key in a:
-        assert torch.equal(a[key], b[key]), key
+    assert_same_state(straight.model.state_dict(), resumed.model.state_dict())
 
 
 def test_real_scene_loss_falls_and_psnr_rises(tmp_path: Path) -> None:
@@ -189,7 +195,9 @@ def test_real_scene_loss_falls_and_psnr_rises(tmp_path: Path) -> None:
 
     def quality() -> float:
         with torch.no_grad():
-            out = trainer.renderer(trainer.model.at(view.time, 0), view.camera, trainer.background)
+            out = trainer.renderer(
+                trainer.model.at(view.time, sh_degree=0), view.camera, trainer.data.background
+            )
         return float(psnr(out.rgb, view.image))
 
     before = quality()
@@ -221,11 +229,11 @@ def test_the_importance_pass_is_timed_and_survives_resume(tmp_path: Path, views:
     for step in range(trainer.config.max_iters):
         trainer.train_step(step)
         trainer.step = step + 1
-    spent = trainer.importance_seconds
+    spent = trainer.lifecycle.importance_seconds
     # Two refinements (steps 4 and 8) measured, or none with the drawn views deciding.
     assert (spent > 0) == (views > 0)
     assert trainer.evaluate()["importance_seconds"] == spent  # reported in metrics.json
     trainer.save()
     resumed = tiny_trainer(tmp_path, densify=densify, max_iters=9)
     resumed.load(trainer.checkpoint_path())
-    assert resumed.importance_seconds == spent
+    assert resumed.lifecycle.importance_seconds == spent

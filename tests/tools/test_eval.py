@@ -15,7 +15,7 @@ import torch
 from dyngs.engine import evaluate as evaluate_module
 from dyngs.metrics import LPIPS
 from dyngs.renderers import Renderer
-from dyngs.tools.common import load_run
+from dyngs.runs import load_run
 from dyngs.tools.eval import main
 from tests.conftest import WEIGHTS
 from tests.engine.helpers import TINY_SCENE
@@ -76,8 +76,9 @@ def test_perfect_render_and_small_images_stay_valid_json(
     """A render identical to its ground truth (PSNR = inf) and images below LPIPS's
     minimum size give null, never Infinity or a crash."""
     run = load_run(tiny_run)
+    data = run.data()
     # Every view is drawn twice in order: once timed, once scored.
-    images = itertools.cycle([v.image for v in run.data.views("test")])
+    images = itertools.cycle([v.image for v in data.views("test")])
 
     def perfect(gaussians: object, camera: object, background: object) -> SimpleNamespace:
         return SimpleNamespace(rgb=next(images))
@@ -91,10 +92,8 @@ def test_perfect_render_and_small_images_stay_valid_json(
         metrics = evaluate_module.evaluate(
             run.model,
             cast(Renderer, perfect),
-            run.data,
+            data,
             "test",
-            0,
-            True,
             None,
             run.device,
             warmup=0,

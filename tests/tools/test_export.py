@@ -10,7 +10,7 @@ import torch
 
 from dyngs.model import GAUSSIAN_PARAMS, activate
 from dyngs.ply import read_ply
-from dyngs.tools.common import load_run
+from dyngs.runs import load_run
 from dyngs.tools.export import export_raw, main, read_gaussians_ply, write_gaussians_ply
 from tests.engine.helpers import TINY_SCENE, output_layer
 
@@ -67,7 +67,7 @@ def test_raw_at_is_what_at_draws(tiny_run: Path) -> None:
     assert not torch.equal(raw["means"], model.canonical.means)
     sh = torch.cat((raw["sh_dc"], raw["sh_rest"]), 1)
     expected = activate(raw["means"], raw["quats"], raw["log_scales"], raw["opacity_logits"], sh, 0)
-    drawn = model.at(0.4, 0)
+    drawn = model.at(0.4, sh_degree=0)
     for name in ("means", "quats", "scales", "opacities", "colors"):
         assert torch.equal(getattr(drawn, name), getattr(expected, name)), name
     still = model.raw_at(0.4, deform=False)
@@ -82,7 +82,7 @@ def test_export_at_time_matches_the_model(tiny_run: Path, tmp_path: Path) -> Non
     expected = export_raw(run, 0.25)
     for name in GAUSSIAN_PARAMS:
         assert torch.equal(back[name], expected[name].float()), name
-    drawn = run.model.at(0.25, run.sh_degree, deform=run.deform)
+    drawn = run.model.at(0.25)
     assert torch.equal(back["means"], drawn.means)
     assert torch.allclose(back["log_scales"].exp(), drawn.scales)
     assert torch.allclose(torch.sigmoid(back["opacity_logits"]), drawn.opacities)
@@ -92,7 +92,7 @@ def test_export_at_time_matches_the_model(tiny_run: Path, tmp_path: Path) -> Non
 
 def test_unused_sh_coefficients_are_zero(tiny_run: Path) -> None:
     run = load_run(tiny_run)
-    assert run.sh_degree == 0  # three steps: only the DC term is active
+    assert run.model.active_sh_degree == 0  # three steps: only the DC term is active
     with torch.no_grad():
         run.model.canonical.sh_rest.fill_(0.5)
     raw = export_raw(run, 0.5, sh_degree=1)

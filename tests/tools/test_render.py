@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from dyngs.datamanagers.datamanager import DataConfig, load_scene
+from dyngs.datamanagers.scene_info import SceneInfo
 from dyngs.tools.render import look_at, main, spiral_cameras, world_up
 from tests.engine.helpers import TINY_SCENE
 
@@ -83,7 +84,7 @@ def test_world_up_snaps_to_a_near_axis_only() -> None:
 
 
 def test_spiral_cameras_look_at_the_scene_centre(tiny_data: Path) -> None:
-    scene = load_scene(tiny_data, DataConfig())
+    scene = SceneInfo.of(load_scene(tiny_data, DataConfig()))
     cameras = spiral_cameras(scene, 6)
     centre = torch.tensor([*scene.scene_box.center, 1.0], dtype=torch.float32)
     distances = [float((c.center - centre[:3]).norm()) for c in cameras]

@@ -8,7 +8,7 @@ from pathlib import Path
 import torch
 
 from dyngs.renderers import cpu_reference, stages
-from dyngs.tools.common import load_run
+from dyngs.runs import load_run
 from tests.tools.conftest import load_benchmark
 
 work_counts = load_benchmark("work_counts")
@@ -21,8 +21,8 @@ def test_counts_match_the_renderers_binning(tiny_run: Path) -> None:
     assert isinstance(renderer, cpu_reference.CpuReferenceRenderer)
     binned, pixels, visible = [], [], []
     with torch.no_grad():
-        for view in run.data.views("test"):
-            gaussians = run.model.at(view.time, run.sh_degree, deform=run.deform)
+        for view in run.data().views("test"):
+            gaussians = run.model.at(view.time)
             screen = stages.project(gaussians, view.camera, renderer.guards)
             w, h = view.camera.width, view.camera.height
             tile = renderer.config.tile_size or cpu_reference.choose_tile_size(screen, w, h)
@@ -35,5 +35,5 @@ def test_counts_match_the_renderers_binning(tiny_run: Path) -> None:
     assert row["pixel_pairs"] == statistics.mean(pixels)
     assert row["visible"] == statistics.mean(visible)
     assert row["gaussians"] == len(run.model.canonical)
-    expected_deformed = int(run.model.dynamic.sum()) if run.deform else 0
+    expected_deformed = int(run.model.dynamic.sum()) if run.model.deforming else 0
     assert row["deformed"] == expected_deformed

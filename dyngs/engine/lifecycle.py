@@ -1,0 +1,279 @@
+"""What happens to the model between training steps, and at the end of a run.
+
+After each good step (`after_step`), in this order:
+1. **motion revisits** (`dyngs.engine.motion`): Gaussians that stopped moving become
+   static, static ones where something moves become dynamic;
+2. **SH degree**: at each interval it may rise by one, when the frozen band's gradient
+   asks for it (or on schedule, `--gaussians.sh-evidence 0`);
+3. **refinement** (`dyngs.engine.densify`): the importance of every Gaussian is measured
+   on the time window's views, then Gaussians are cloned, split and pruned within the
+   budget, and every owner of per-Gaussian data follows the change;
+4. **opacity reset** (3DGS), with Adam's moments of the opacities cleared.
+
+At the end (`finish`): a last motion revisit, then the field is cut to the span of the
+dynamic Gaussians. The schedule of all of this is `dyngs.engine.schedules`; the state it
+keeps between refinements is `DensifyState`, saved with the checkpoint.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from functools import cached_property
+
+import torch
+from rich.console import Console
+from torch import Tensor
+
+from dyngs.config import TrainConfig
+from dyngs.datamanagers.datamanager import DataManager, TrainBatch
+from dyngs.engine import schedules
+from dyngs.engine.densify import (
+    DensifyState,
+    accumulate,
+    apply_topology,
+    plan_refinement,
+    probe_band,
+    reset_opacity_logits,
+)
+from dyngs.engine.motion import FixedCameraMotion, model_bytes, revisit, sample_times
+from dyngs.engine.optim import replace_params
+from dyngs.engine.writer import Writer
+from dyngs.fields.base import Croppable
+from dyngs.model import DynamicGaussians
+from dyngs.renderers.base import ContributionRenderer, Renderer, RenderOutput
+
+
+class Lifecycle:
+    """The model's changes between steps (see the module docstring).
+
+    `extent` (the cameras' radius) scales densification thresholds; `pixel_size` (world
+    size of a pixel at the scene centre) is what "moves less than half a pixel" means.
+    `on_topology` is called after every change of the Gaussian set, so that other owners
+    of per-Gaussian data (the rigidity term's neighbourhoods) follow. The renderer and the
+    optimizer stay the trainer's (it rebuilds the optimizer on resume): the methods that
+    need them are given them.
+    """
+
+    def __init__(
+        self,
+        config: TrainConfig,
+        model: DynamicGaussians,
+        data: DataManager,
+        writer: Writer,
+        console: Console,
+        generator: torch.Generator,
+        extent: float,
+        pixel_size: float,
+        on_topology: Callable[[], None] = lambda: None,
+    ) -> None:
+        self.config = config
+        self.model = model
+        self.data = data
+        self.writer = writer
+        self.console = console
+        self.generator = generator
+        self.extent = extent
+        self.pixel_size = pixel_size
+        self.on_topology = on_topology
+        self.device = model.canonical.means.device
+        self.state = DensifyState.zeros(len(model.canonical), self.device)
+        self.importance_seconds = 0.0
+        self.motion_times = sample_times(data.scene.train.times, config.motion.samples)
+
+    # ------------------------------------------------------------ during a step
+
+    def probe_degree(self) -> int | None:
+        """The SH degree to draw this step with, when a frozen band gathers evidence."""
+        return schedules.probe_degree(self.config, self.model.active_sh_degree)
+
+    def measures_each_step(self, renderer: Renderer) -> bool:
+        """Whether every training step must measure its view's contributions: importance
+        is the largest share of the views drawn since the last refinement
+        (`--densify.importance-views 0`). Otherwise `measure_importance` renders the
+        window's views just before each refinement, and no step measures."""
+        d = self.config.densify
+        return self.prunes_by_importance(renderer) and d.importance_views == 0
+
+    def prunes_by_importance(self, renderer: Renderer) -> bool:
+        """Whether refinements prune by importance: asked for, and the renderer can measure
+        it (a run whose renderer cannot says so once, when it starts)."""
+        asked = self.config.densify.prune_importance > 0
+        return asked and isinstance(renderer, ContributionRenderer)
+
+    def importance_note(self, renderer: Renderer) -> str | None:
+        """The one-line notice that importance pruning falls back, when it does."""
+        if self.config.densify.prune_importance > 0 and not self.prunes_by_importance(renderer):
+            return (
+                f"[densify] renderer {type(renderer).__name__} cannot measure each "
+                "Gaussian's contribution: pruning by opacity and size only"
+            )
+        return None
+
+    def gather(self, out: RenderOutput, batch: TrainBatch, probe: int | None) -> None:
+        """Add a good step's statistics (call after backward, before the optimizer step)."""
+        canonical = self.model.canonical
+        if probe is not None:
+            probe_band(self.state, canonical.sh_rest, probe)
+        size = (batch.camera.width, batch.camera.height)
+        accumulate(self.state, out, *size, canonical.means.grad, batch.time)
+
+    # ------------------------------------------------------------ between steps
+
+    def after_step(self, step: int, optimizer: torch.optim.Optimizer, renderer: Renderer) -> None:
+        """Everything due once `step` steps are done (see the module docstring)."""
+        cfg = self.config
+        if schedules.is_motion_step(cfg, step):
+            self.revisit_motion(step)
+        self.consider_sh_degree(step)
+        if schedules.is_refine_step(cfg, step):
+            self.refine(step, optimizer, renderer)
+        if schedules.is_reset_step(cfg, step):
+            logits = self.model.canonical.opacity_logits
+            with torch.no_grad():
+                logits.copy_(reset_opacity_logits(logits, cfg.densify.reset_opacity))
+            for moment in optimizer.state.get(logits, {}).values():
+                if isinstance(moment, Tensor) and moment.ndim > 0:
+                    moment.zero_()
+
+    def consider_sh_degree(self, step: int) -> None:
+        """At each SH interval, raise the degree if the frozen band's evidence asks for it."""
+        cfg, model = self.config, self.model
+        if not schedules.is_sh_step(cfg, step, model.active_sh_degree):
+            return
+        if cfg.gaussians.sh_evidence <= 0:
+            model.active_sh_degree += 1
+            return
+        evidence = self.state.sh_coherence()
+        self.writer.scalar("sh/evidence", evidence, step)
+        if evidence >= schedules.sh_evidence_needed(cfg, self.data.num_train):
+            model.active_sh_degree += 1
+            self._say(
+                f"[sh] view-dependent error (evidence {evidence:.2f}): "
+                f"SH degree {model.active_sh_degree}"
+            )
+
+    def refine(self, step: int, optimizer: torch.optim.Optimizer, renderer: Renderer) -> None:
+        """Measure importance, then clone, split and prune (3DGS adaptive density control)."""
+        cfg = self.config
+        if self.prunes_by_importance(renderer) and cfg.densify.importance_views > 0:
+            started = time.perf_counter()
+            self.state.importance = self.measure_importance(step, renderer)
+            self.importance_seconds += time.perf_counter() - started
+        plan = plan_refinement(
+            cfg.densify,
+            self.model,
+            self.state,
+            step,
+            self.extent,
+            self.generator,
+            schedules.budget_at(cfg, step),
+        )
+        if plan is not None:
+            apply_topology(self.model, optimizer, *plan)
+            self.on_topology()
+        self.state = DensifyState.zeros(len(self.model.canonical), self.device)
+
+    def measure_importance(self, step: int, renderer: Renderer) -> Tensor:
+        """Each Gaussian's largest share (blending weight summed over pixels) of any of
+        `--densify.importance-views` training views of the time window at `step`, rendered
+        now without gradient. The views drawn since the last refinement would be both a
+        sample (a Gaussian only undrawn views need looks unimportant) and stale (a view
+        drawn long ago vouches for a Gaussian that has since faded); docs/CAPACITY.md."""
+        cfg = self.config
+        importance = torch.zeros(len(self.model.canonical), device=self.device)
+        if not isinstance(renderer, ContributionRenderer):
+            return importance.fill_(math.inf)  # never prune by what cannot be measured
+        window = schedules.time_window(cfg, step)
+        poses = self.data.train_poses(window, cfg.densify.importance_views)
+        background = self.data.background
+        with torch.no_grad():
+            for camera, t in poses:
+                out = renderer.with_contribution(self.model.at(t), camera, background)
+                assert out.contribution is not None
+                importance = torch.maximum(importance, out.contribution.to(importance.dtype))
+        return importance
+
+    # ------------------------------------------------------------ static / dynamic
+
+    @cached_property
+    def fixed_motion(self) -> FixedCameraMotion | None:
+        """What the fixed cameras see move (None without any); computed once."""
+        fixed = self.data.fixed_cameras
+        return None if fixed is None else FixedCameraMotion.of(self.data.scene.train, fixed=fixed)
+
+    def revisit_motion(self, step: int, final: bool = False) -> None:
+        """Revisit the static/dynamic split (`dyngs.engine.motion.revisit`)."""
+        cfg, model, state = self.config, self.model, self.state
+        was_dynamic = model.any_dynamic()
+        # A static Gaussian's region "keeps an error" when its screen gradient is high enough
+        # to densify for and its canonical gradient consistently asks for a velocity.
+        mean_gradient = state.grad_sum / state.count.clamp_min(1)
+        coherence = max(cfg.motion.pull_coherence, schedules.chance_coherence(self.data.num_train))
+        wants_motion = (mean_gradient >= cfg.densify.grad_threshold) & (
+            state.pull_coherence() >= coherence
+        )
+        pixels_move = None
+        if final:  # nothing is left to learn: only measured motion decides
+            wants_motion[:] = False
+        elif self.fixed_motion is not None:
+            # Fixed cameras: a Gaussian where most of the cameras that see it see pixels
+            # change is dynamic. Asked of the Gaussians as they are at each revisit, not at
+            # the end of the warm-up: from a noisy initial cloud nothing sits on the moving
+            # objects yet, and a split made then starved the field for good.
+            means = model.canonical.means.detach()
+            pixels_move = self.fixed_motion.evidence(means, cfg.motion)
+        became_static, became_dynamic = revisit(
+            model, cfg.motion, self.motion_times, self.pixel_size, wants_motion, pixels_move
+        )
+        self.writer.scalar("motion/became_static", became_static, step)
+        self.writer.scalar("motion/became_dynamic", became_dynamic, step)
+        if was_dynamic and not model.any_dynamic():
+            self._say(
+                f"[motion] nothing in this scene moves more than {cfg.motion.static_pixels}"
+                " px: training on as a static scene, without the deformation field"
+            )
+
+    # ------------------------------------------------------------ the end
+
+    def finish(self, step: int, optimizer: torch.optim.Optimizer) -> None:
+        """A last motion revisit (measured motion alone), then the field crop."""
+        if self.config.motion.separate and schedules.deforming(self.config, step):
+            self.revisit_motion(step, final=True)
+        self.crop_field(optimizer)
+
+    def crop_field(self, optimizer: torch.optim.Optimizer) -> None:
+        """Cut the field to the span of the Gaussians that query it, once they stop moving
+        (the end of training); Adam's moments are cut alike, so a resumed run goes on."""
+        model = self.model
+        field = model.field
+        crops = self.config.motion.crop_field and isinstance(field, Croppable)
+        if not crops or not model.any_dynamic():
+            return
+        assert isinstance(field, Croppable)
+        before = model_bytes(model)
+        old = list(field.parameters())
+        with torch.no_grad():
+            remap = field.crop_to(model.canonical.means[model.dynamic])
+        if remap is None:
+            return
+        replace_params(optimizer, old, list(field.parameters()), remap)
+        self._say(
+            f"[motion] field cut to the span of the dynamic Gaussians: model "
+            f"{before / 2**20:.2f} → {model_bytes(model) / 2**20:.2f} MiB"
+        )
+
+    # ------------------------------------------------------------ checkpoints
+
+    def state_dict(self) -> dict[str, object]:
+        return {"densify": self.state.state_dict(), "importance_seconds": self.importance_seconds}
+
+    def load_state_dict(self, state: dict[str, object]) -> None:
+        densify = state["densify"]
+        assert isinstance(densify, dict)
+        self.state = DensifyState.from_state_dict(densify)
+        self.importance_seconds = float(state.get("importance_seconds", 0.0))  # type: ignore[arg-type]
+
+    def _say(self, line: str) -> None:
+        self.console.print(line, highlight=False, markup=False)

@@ -1,0 +1,161 @@
+"""The training objective: the loss of one step as named, weighted terms.
+
+- `photometric`: (1 − λ)·L1 + λ·D-SSIM against the view's image (Kerbl et al. 2023),
+  weighted per pixel by the dataset's mask (`--losses.masked`) and by how far a fixed
+  camera's pixel is from its usual content (`--losses.change-weight`);
+- while the model deforms: the plane regularizers of K-Planes (total variation of the
+  spatial planes, smoothness and L1-to-static of the time planes) and, with
+  `--losses.arap`, local rigidity between this time and a random other one;
+- extra terms an installed package registers in `LOSS_TERMS` (entry-point group
+  `dyngs.losses`: a function of `TermInputs` returning a scalar), each switched on by
+  `--losses.extra NAME WEIGHT`.
+
+A term whose weight is 0 is not computed at all. The trainer sums the terms; tests and
+TensorBoard read them by name.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+from jaxtyping import Float
+from torch import Tensor
+
+from dyngs.config import LossConfig
+from dyngs.datamanagers.datamanager import DataManager, TrainBatch
+from dyngs.errors import ConfigError
+from dyngs.fields.base import PlaneGrids
+from dyngs.losses.arap import arap_loss, neighbor_weights
+from dyngs.losses.photometric import photometric
+from dyngs.losses.temporal import time_l1_to_static, time_smoothness
+from dyngs.losses.tv import plane_tv
+from dyngs.model import DynamicGaussians
+from dyngs.neighbors import knn
+from dyngs.registry import Registry
+from dyngs.renderers.base import RenderOutput
+from dyngs.types import Gaussians
+
+
+@dataclass
+class TermInputs:
+    """What an extra loss term may read about the step (H×W image, N Gaussians)."""
+
+    out: RenderOutput
+    batch: TrainBatch
+    gaussians: Gaussians
+    """The Gaussians drawn at the view's time."""
+    model: DynamicGaussians
+    step: int
+
+
+LossTerm = Callable[[TermInputs], Float[Tensor, ""]]
+
+
+def _check_term(item: object) -> str | None:
+    return None if callable(item) else "is not callable"
+
+
+LOSS_TERMS: Registry[LossTerm] = Registry("loss term", "dyngs.losses", _check_term)
+
+
+def plane_terms(weights: LossConfig, planes: PlaneGrids) -> dict[str, Tensor]:
+    """Plane regularizers (K-Planes, Fridovich-Keil et al. 2023), weighted; a term with
+    weight 0, or a field without planes, costs nothing."""
+    terms: dict[str, Tensor] = {}
+    if weights.plane_tv > 0 and planes.spatial:
+        terms["plane_tv"] = weights.plane_tv * plane_tv(planes.spatial)
+    if weights.time_smoothness > 0 and planes.temporal:
+        terms["time_smoothness"] = weights.time_smoothness * time_smoothness(planes.temporal)
+    if weights.time_l1 > 0 and planes.temporal:
+        terms["time_l1"] = weights.time_l1 * time_l1_to_static(planes.temporal)
+    return terms
+
+
+class Objective:
+    """The loss terms of a step (see the module docstring), with the little state they
+    keep: the rigidity term's neighbourhoods, recomputed after any topology change."""
+
+    def __init__(
+        self,
+        config: LossConfig,
+        data: DataManager,
+        pixel_change: float,
+        generator: torch.Generator,
+    ) -> None:
+        self.config = config
+        self.data = data
+        self.pixel_change = pixel_change
+        self.generator = generator
+        self.extra = {name: LOSS_TERMS.get(name) for name in config.extra}
+        self._neighbors: tuple[Tensor, Tensor] | None = None
+
+    def pixel_weights(self, batch: TrainBatch) -> Float[Tensor, "H W 1"] | None:
+        """Per-pixel weights of the photometric loss: the dataset's mask with
+        `--losses.masked`, times 1 + `--losses.change-weight` where a fixed camera sees a
+        pixel differ from its usual content."""
+        mask = batch.mask if self.config.masked else None
+        fixed = self.data.fixed_cameras if self.config.change_weight > 0 else None
+        if fixed is None:
+            return mask
+        changed = fixed.changed(batch.index, batch.image, self.pixel_change)
+        if changed is None:
+            return mask
+        weights = (1 + self.config.change_weight * changed.to(batch.image.dtype))[..., None]
+        return weights if mask is None else weights * mask
+
+    def change_weight_note(self) -> str:
+        """What `--losses.change-weight` does on this capture, for the log."""
+        weight, fixed = self.config.change_weight, self.data.fixed_cameras
+        if fixed is None:
+            return (
+                f"warning: --losses.change-weight {weight:g} has no effect: no camera of "
+                f"{self.data.scene.name} stays put at three or more times"
+            )
+        return (
+            f"[loss] {len(fixed.views)} fixed cameras: pixels that differ from "
+            f"their camera's temporal median count {1 + weight:g}× in the photometric loss"
+        )
+
+    def terms(
+        self,
+        model: DynamicGaussians,
+        out: RenderOutput,
+        batch: TrainBatch,
+        gaussians: Gaussians,
+        step: int,
+    ) -> dict[str, Tensor]:
+        """The weighted terms of this step's loss, by name."""
+        cfg = self.config
+        weights = self.pixel_weights(batch)
+        terms = {"photometric": photometric(out.rgb, batch.image, cfg.dssim, weights)}
+        if model.deforms:
+            terms |= plane_terms(cfg, model.field.planes())
+            if cfg.arap > 0:
+                terms["arap"] = cfg.arap * self.rigidity(model, gaussians.means)
+        for name, term in self.extra.items():
+            value = term(TermInputs(out, batch, gaussians, model, step))
+            if value.ndim != 0:
+                raise ConfigError(f"loss term {name!r} returned shape {tuple(value.shape)}")
+            terms[name] = cfg.extra[name] * value
+        return terms
+
+    def rigidity(self, model: DynamicGaussians, means_now: Tensor) -> Tensor:
+        """Neighbour distances of `means_now` against those at a random time (ARAP)."""
+        if self._neighbors is None:
+            with torch.no_grad():
+                canonical = model.canonical.means.detach()
+                neighbors = knn(canonical, self.config.arap_neighbors)
+                d = (canonical[:, None] - canonical[neighbors]).norm(dim=-1)
+                weights = neighbor_weights(canonical, neighbors, float(d.mean()) + 1e-12)
+            self._neighbors = (neighbors, weights)
+        neighbors, weights = self._neighbors
+        other = float(torch.rand((), generator=self.generator))
+        with torch.no_grad():
+            means_other = model.at(other, sh_degree=0, deform=True).means
+        return arap_loss(means_now, means_other, neighbors, weights)
+
+    def on_topology(self) -> None:
+        """The Gaussians changed: neighbourhoods are recomputed on the new set."""
+        self._neighbors = None

@@ -1,0 +1,138 @@
+"""When things happen in a run: pure functions of the config and the step.
+
+A run of `max_iters` steps is laid out as:
+
+    step 0 ── warm-up ──► warmup_iters ── time window widens ──► window full ── … ──► end
+              static,                    frontier draws,          motion revisits
+              t ≤ warmup_time            refinement (densify/prune) until refine_stop
+
+Nothing here reads or changes state: the trainer and the lifecycle ask these functions
+what a step is, and tests can check a schedule without training anything.
+"""
+
+from __future__ import annotations
+
+import math
+
+from dyngs.config import TrainConfig
+
+
+def deforming(config: TrainConfig, step: int) -> bool:
+    """Whether the deformation field is on: after the static warm-up."""
+    return step >= config.warmup_iters
+
+
+def time_window(config: TrainConfig, step: int) -> float:
+    """Latest time trained on at `step`: `warmup_time` through the warm-up, then widening
+    linearly to 1 over `time_ramp` of the run."""
+    if step < config.warmup_iters:
+        return config.warmup_time
+    ramp = config.time_ramp * config.max_iters
+    if ramp <= 0:
+        return 1.0
+    widened = (1 - config.warmup_time) * (step - config.warmup_iters) / ramp
+    return min(1.0, config.warmup_time + widened)
+
+
+def window_full_step(config: TrainConfig) -> float:
+    """First step at which the time window spans the whole sequence."""
+    return config.warmup_iters + config.time_ramp * config.max_iters
+
+
+def is_frontier_step(config: TrainConfig, step: int) -> bool:
+    """Whether this step trains on the newest part of a widening window: `frontier_share`
+    of the steps, spread evenly (step s is one when ⌊(s + 1)·share⌋ > ⌊s·share⌋)."""
+    share = config.frontier_share
+    return (
+        deforming(config, step)
+        and time_window(config, step) < 1.0
+        and math.floor((step + 1) * share) > math.floor(step * share)
+    )
+
+
+def learning_progress(config: TrainConfig, step: int) -> tuple[float, float | None]:
+    """How far the learning rates have decayed: the run's progress, and the deformation's
+    (from the step the time window is full) when `--optim.hold-deformation-rates`."""
+    progress = step / max(config.max_iters, 1)
+    if not config.optim.hold_deformation_rates:
+        return progress, None
+    full = window_full_step(config)
+    return progress, (step - full) / max(config.max_iters - full, 1)
+
+
+def refine_stop(config: TrainConfig) -> float:
+    """Last step that may densify or prune."""
+    return config.densify.refine_stop * config.max_iters
+
+
+def is_refine_step(config: TrainConfig, step: int) -> bool:
+    """Whether Gaussians are cloned, split and pruned after `step` steps."""
+    d = config.densify
+    within = d.refine_start <= step <= refine_stop(config)
+    return within and step % d.refine_every == 0 and step > 0
+
+
+def budget_at(config: TrainConfig, step: int) -> int:
+    """The Gaussian cap at `step`: a quarter of the budget when densification starts, growing
+    linearly to all of it by the end of the densification window."""
+    d = config.densify
+    if d.max_gaussians is None:
+        return 2**62
+    progress = (step - d.refine_start) / max(refine_stop(config) - d.refine_start, 1)
+    return int(d.max_gaussians * (0.25 + 0.75 * min(max(progress, 0.0), 1.0)))
+
+
+def is_reset_step(config: TrainConfig, step: int) -> bool:
+    """Whether every opacity is clamped down after `step` steps (3DGS's opacity reset)."""
+    every = config.densify.reset_opacity_every
+    return every > 0 and step > 0 and step % every == 0 and step <= refine_stop(config)
+
+
+def is_motion_step(config: TrainConfig, step: int) -> bool:
+    """Revisit the static/dynamic split every `motion.every` steps once training spans
+    all times."""
+    return (
+        config.motion.separate
+        and deforming(config, step)
+        and time_window(config, step) >= 1.0
+        and step % config.motion.every == 0
+    )
+
+
+def probe_degree(config: TrainConfig, active: int) -> int | None:
+    """The SH band rendered frozen at zero to gather evidence for it, if any."""
+    g = config.gaussians
+    if g.sh_evidence > 0 and active < g.sh_degree:
+        return active + 1
+    return None
+
+
+def is_sh_step(config: TrainConfig, step: int, active: int) -> bool:
+    """Whether the SH degree may rise after `step` steps: every `sh_degree_interval` steps
+    while below the highest degree (3DGS's schedule). It then rises at once when
+    `sh_evidence` is 0, else only when the evidence asks for it (`sh_evidence_needed`)."""
+    g = config.gaussians
+    return active < g.sh_degree and step % max(g.sh_degree_interval, 1) == 0
+
+
+def chance_coherence(views: int) -> float:
+    """Chance alone makes a gradient summed over `views` views about 1/√views consistent;
+    evidence must clear three times that."""
+    return 3 / math.sqrt(max(views, 1))
+
+
+def sh_evidence_needed(config: TrainConfig, views: int) -> float:
+    """How consistent the frozen band's gradient must be for the SH degree to rise."""
+    return max(config.gaussians.sh_evidence, chance_coherence(views))
+
+
+def schedule_warning(config: TrainConfig) -> str | None:
+    """A one-line warning when the run is too short for densification to happen."""
+    d = config.densify
+    if config.max_iters > 0 and d.refine_start > refine_stop(config):
+        return (
+            f"warning: no densification in this run: it would start at step "
+            f"{d.refine_start} and stop at {d.refine_stop:g} × {config.max_iters} = "
+            f"{refine_stop(config):g} (lower --densify.refine-start)"
+        )
+    return None
