@@ -10,7 +10,7 @@ import math
 
 import numpy as np
 import torch
-from jaxtyping import Float
+from jaxtyping import Float, Int
 from torch import Tensor
 
 from dyngs.types import Camera, SceneBox
@@ -206,14 +206,7 @@ def points_in_common_view(
     spare_score = np.zeros(0, dtype=np.int64)
     for _ in range(rounds):
         source = rng.integers(0, len(cams), size=batch)
-        fx, fy, cx, cy, width, height = intrinsics[source].T
-        u = rng.uniform(0.0, 1.0, size=batch) * width
-        v = rng.uniform(0.0, 1.0, size=batch) * height
-        a3, b3 = near[source] ** 3, far[source] ** 3
-        depth = np.cbrt(a3 + rng.uniform(0.0, 1.0, size=batch) * (b3 - a3))
-        local = np.stack([(u - cx) / fx * depth, (v - cy) / fy * depth, depth], axis=1)
-        # x_world = Rᵀ (x_cam − t), one candidate per row.
-        world = np.einsum("nji,nj->ni", rotations[source], local - translations[source])
+        world = _in_frustums(rng, source, rotations, translations, intrinsics, near, far)
         score = _visibility(world, rotations, translations, intrinsics, near, far)
         full = score == len(cams)
         accepted.append(world[full])
@@ -230,6 +223,28 @@ def points_in_common_view(
         order = np.argsort(-spare_score, kind="stable")[: count - len(points)]
         points = np.concatenate([points, spare[order]])
     return torch.from_numpy(points).float()
+
+
+def _in_frustums(
+    rng: np.random.Generator,
+    source: Int[np.ndarray, " B"],
+    rotations: Float[np.ndarray, "C 3 3"],
+    translations: Float[np.ndarray, "C 3"],
+    intrinsics: Float[np.ndarray, "C 6"],
+    near: Float[np.ndarray, " C"],
+    far: Float[np.ndarray, " C"],
+) -> Float[np.ndarray, "B 3"]:
+    """One world point uniform in the frustum of camera `source[i]` for each i: a random
+    pixel, and a depth with density ∝ depth² between its near and far."""
+    batch = len(source)
+    fx, fy, cx, cy, width, height = intrinsics[source].T
+    u = rng.uniform(0.0, 1.0, size=batch) * width
+    v = rng.uniform(0.0, 1.0, size=batch) * height
+    a3, b3 = near[source] ** 3, far[source] ** 3
+    depth = np.cbrt(a3 + rng.uniform(0.0, 1.0, size=batch) * (b3 - a3))
+    local = np.stack([(u - cx) / fx * depth, (v - cy) / fy * depth, depth], axis=1)
+    # x_world = Rᵀ (x_cam − t), one candidate per row.
+    return np.einsum("nji,nj->ni", rotations[source], local - translations[source])
 
 
 def _visibility(

@@ -318,6 +318,18 @@ def _split(caches: list[FrameCache], cameras: list[Camera], frames: int, cache_b
     )
 
 
+def _common_frame_count(caches: list[FrameCache]) -> int:
+    """The frame count every video shares; a DatasetError naming one that differs."""
+    longest = max(caches, key=lambda c: c.frames)
+    for cache in caches:
+        if cache.frames != longest.frames:
+            raise DatasetError(
+                f"{cache.video}: {cache.frames} frames, but {longest.video.name} has "
+                f"{longest.frames} (every video needs the same number)"
+            )
+    return longest.frames
+
+
 def parse_dynerf(
     path: Path,
     downscale: int = 1,
@@ -339,20 +351,13 @@ def parse_dynerf(
         )
     poses = _read_poses(poses_path, videos)  # before decoding: bad poses fail fast
     caches = decode_videos(videos, path, downscale)
-    longest = max(caches, key=lambda c: c.frames)
-    for cache in caches:
-        if cache.frames != longest.frames:
-            raise DatasetError(
-                f"{cache.video}: {cache.frames} frames, but {longest.video.name} has "
-                f"{longest.frames} (every video needs the same number)"
-            )
+    frames = _common_frame_count(caches)
     cameras = []
     for pose, cache in zip(poses, caches, strict=True):
         camera = _at_video_size(pose, cache, poses_path)
         cameras.append(camera.scaled(1.0 / downscale) if downscale > 1 else camera)
     test_index = next((i for i, v in enumerate(videos) if v.stem == "cam00"), 0)
     train_index = [i for i in range(len(videos)) if i != test_index]
-    frames = longest.frames
     # Three quarters of the host cache for the train split, a quarter for the test view.
     train_caches = [caches[i] for i in train_index]
     train_bytes = cache_bytes - cache_bytes // 4

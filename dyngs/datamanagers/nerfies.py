@@ -275,17 +275,9 @@ def _read_points(path: Path, scene: _Scene) -> torch.Tensor:
     return torch.from_numpy((points - scene.center) * scene.scale).float()
 
 
-def parse_nerfies(
-    path: Path,
-    downscale: int = 1,
-    background: tuple[float, float, float] = (1.0, 1.0, 1.0),
-    num_random_points: int = 20_000,
-    seed: int = 0,
-    cache_bytes: int = HOST_CACHE_BYTES,
-) -> SceneData:
-    """Read a Nerfies / HyperNeRF capture folder; see the module docstring."""
-    path = capture_folder(path, downscale)
-    dataset_path = path / "dataset.json"
+def _split_ids(dataset_path: Path) -> tuple[list[str], list[str]]:
+    """dataset.json's train and val ids; without val ids, every HOLDOUT_EVERY-th train id
+    is held out."""
     dataset = load_json(dataset_path)
     train_ids = _ids(dataset, "train_ids", str(dataset_path))
     val_ids = _ids(dataset, "val_ids", str(dataset_path))
@@ -298,6 +290,21 @@ def parse_nerfies(
             raise DatasetError(
                 f"{dataset_path}: too few train_ids to hold some out (val_ids is empty)"
             )
+    return train_ids, val_ids
+
+
+def parse_nerfies(
+    path: Path,
+    downscale: int = 1,
+    background: tuple[float, float, float] = (1.0, 1.0, 1.0),
+    num_random_points: int = 20_000,
+    seed: int = 0,
+    cache_bytes: int = HOST_CACHE_BYTES,
+) -> SceneData:
+    """Read a Nerfies / HyperNeRF capture folder; see the module docstring."""
+    path = capture_folder(path, downscale)
+    dataset_path = path / "dataset.json"
+    train_ids, val_ids = _split_ids(dataset_path)
     scene = _read_scene(path / "scene.json")
     indices = _time_indices(path / "metadata.json", train_ids + val_ids)
     low, high = min(indices.values()), max(indices.values())

@@ -206,20 +206,8 @@ def _rotation(axis: tuple[float, float, float], angle: float) -> Float[np.ndarra
     return np.eye(3) + math.sin(angle) * cross + (1 - math.cos(angle)) * cross @ cross
 
 
-def scene_objects(config: ProceduralSceneConfig, t: float) -> list[SceneObject]:
-    """The scene's primitives at time t ∈ [0, 1]."""
-    moving = config.motion
-    t = t if moving else 0.0
-    phase = 2 * math.pi * t
-    ball_center = np.array(
-        [
-            0.15 + 0.35 * math.cos(phase),
-            0.2 + 0.35 * math.sin(phase),
-            -0.12 + 0.3 * math.sin(phase) ** 2,
-        ]
-    )
-    cube_center = np.array([0.55, -0.5, 0.1 + 0.12 * math.sin(phase)])
-    cube_rotation = _rotation((0.3, 0.2, 1.0), 0.5 + 1.5 * math.pi * t)
+def _still_objects() -> list[SceneObject]:
+    """The primitives that never move: a pedestal and a pillar."""
     return [
         SceneObject(
             "pedestal",
@@ -239,6 +227,25 @@ def scene_objects(config: ProceduralSceneConfig, t: float) -> list[SceneObject]:
             dynamic=False,
             texture=Texture("stripes", ((0.86, 0.24, 0.18), (0.96, 0.92, 0.82)), 0.15),
         ),
+    ]
+
+
+def scene_objects(config: ProceduralSceneConfig, t: float) -> list[SceneObject]:
+    """The scene's primitives at time t ∈ [0, 1]."""
+    moving = config.motion
+    t = t if moving else 0.0
+    phase = 2 * math.pi * t
+    ball_center = np.array(
+        [
+            0.15 + 0.35 * math.cos(phase),
+            0.2 + 0.35 * math.sin(phase),
+            -0.12 + 0.3 * math.sin(phase) ** 2,
+        ]
+    )
+    cube_center = np.array([0.55, -0.5, 0.1 + 0.12 * math.sin(phase)])
+    cube_rotation = _rotation((0.3, 0.2, 1.0), 0.5 + 1.5 * math.pi * t)
+    return [
+        *_still_objects(),
         SceneObject(
             "ball",
             "sphere",

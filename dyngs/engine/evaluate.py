@@ -22,8 +22,9 @@ import numpy as np
 import torch
 from rich.console import Console
 from rich.progress import Progress
+from torch import Tensor
 
-from dyngs.datamanagers.datamanager import DataManager
+from dyngs.datamanagers.datamanager import DataManager, TrainBatch
 from dyngs.engine.writer import to_uint8
 from dyngs.metrics import LPIPS, load_lpips, psnr, ssim
 from dyngs.model import DynamicGaussians
@@ -64,20 +65,46 @@ def evaluate(
 ) -> dict[str, Any]:
     """Mean and per-frame metrics of `split`; render | ground-truth pairs go to `image_dir`.
 
-    Timing is a pass of its own, before scoring: `warmup` untimed renders of the first view
-    (leaving out one-off costs such as allocator growth and CUDA kernel loading), then every
-    view deformed and drawn back to back. Scoring a frame between timed renders slowed the
-    next render by up to 80 % on CPU (LPIPS evicts the caches and reshapes the heap).
-    `render_ms` is the mean time of deforming and drawing one frame, with its median and
-    95th percentile alongside; `deformation_ms` is the part spent deforming the Gaussians.
+    Timing is a pass of its own, before scoring (`time_renders`): scoring a frame between
+    timed renders slowed the next render on CPU (LPIPS evicts the caches and reshapes the
+    heap). `render_ms` is the mean time of deforming and drawing one frame, with its
+    median and 95th percentile alongside; `deformation_ms` is the part spent deforming.
     """
-    lpips = load_lpips(device)
     background = data.scene.background.to(device, torch.float32)
     if image_dir is not None:
         image_dir.mkdir(parents=True, exist_ok=True)
     views = list(data.views(split))
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
+    timings = time_renders(model, renderer, views, background, device, warmup)
+    scorer = _Scorer(load_lpips(device), split)
+    frames: list[dict[str, Any]] = []
+    with Progress(console=console or Console(), transient=True) as progress:
+        task = progress.add_task(f"evaluate {split}", total=len(views))
+        for i, (view, (render_ms, deformation_ms)) in enumerate(zip(views, timings, strict=True)):
+            rgb = renderer(model.at(view.time), view.camera, background).rgb.clamp(0, 1)
+            frame = {"index": i, "time": view.time, **scorer(i, rgb, view.image)}
+            frames.append(frame | {"render_ms": render_ms, "deformation_ms": deformation_ms})
+            if image_dir is not None:
+                pair = torch.cat((rgb, view.image), dim=1)  # render | ground truth
+                cv2.imwrite(
+                    str(image_dir / f"{i:04d}.png"), cv2.cvtColor(to_uint8(pair), cv2.COLOR_RGB2BGR)
+                )
+            progress.advance(task)
+    return summarize(split, frames, warmup, device)
+
+
+def time_renders(
+    model: DynamicGaussians,
+    renderer: Renderer,
+    views: list[TrainBatch],
+    background: Tensor,
+    device: torch.device,
+    warmup: int,
+) -> list[tuple[float, float]]:
+    """(whole frame, deformation) milliseconds of every view, drawn back to back after
+    `warmup` untimed renders of the first (leaving out one-off costs such as allocator
+    growth and CUDA kernel loading)."""
     for _ in range(warmup if views else 0):
         renderer(model.at(views[0].time), views[0].camera, background)
     timings: list[tuple[float, float]] = []
@@ -90,42 +117,40 @@ def evaluate(
         renderer(gaussians, view.camera, background)
         _sync(device)
         timings.append((1000 * (time.perf_counter() - started), 1000 * (deformed - started)))
+    return timings
 
-    frames: list[dict[str, Any]] = []
-    small_warned = False
-    with Progress(console=console or Console(), transient=True) as progress:
-        task = progress.add_task(f"evaluate {split}", total=len(views))
-        for i, (view, (render_ms, deformation_ms)) in enumerate(zip(views, timings, strict=True)):
-            out = renderer(model.at(view.time), view.camera, background)
-            rgb = out.rgb.clamp(0, 1)
-            perceptual: float | None = None
-            if lpips is not None:
-                if min(rgb.shape[0], rgb.shape[1]) >= LPIPS.MIN_SIZE:
-                    perceptual = float(lpips(rgb, view.image))
-                elif not small_warned:
-                    small_warned = True
-                    warnings.warn(
-                        f"LPIPS needs images of at least {LPIPS.MIN_SIZE}×{LPIPS.MIN_SIZE} px, "
-                        f"{split} view {i} is {rgb.shape[0]}×{rgb.shape[1]}; its LPIPS is null",
-                        stacklevel=2,
-                    )
-            frames.append(
-                {
-                    "index": i,
-                    "time": view.time,
-                    "psnr": finite_or_none(float(psnr(rgb, view.image))),
-                    "ssim": float(ssim(rgb, view.image)),
-                    "lpips": perceptual,
-                    "render_ms": render_ms,
-                    "deformation_ms": deformation_ms,
-                }
-            )
-            if image_dir is not None:
-                pair = torch.cat((rgb, view.image), dim=1)  # render | ground truth
-                cv2.imwrite(
-                    str(image_dir / f"{i:04d}.png"), cv2.cvtColor(to_uint8(pair), cv2.COLOR_RGB2BGR)
+
+class _Scorer:
+    """PSNR, SSIM and LPIPS of one frame; LPIPS is None without its weights, and for
+    images below its minimum size (said once per split)."""
+
+    def __init__(self, lpips: LPIPS | None, split: str) -> None:
+        self.lpips, self.split, self.warned = lpips, split, False
+
+    def __call__(self, index: int, rgb: Tensor, image: Tensor) -> dict[str, float | None]:
+        perceptual: float | None = None
+        if self.lpips is not None:
+            if min(rgb.shape[0], rgb.shape[1]) >= LPIPS.MIN_SIZE:
+                perceptual = float(self.lpips(rgb, image))
+            elif not self.warned:
+                self.warned = True
+                warnings.warn(
+                    f"LPIPS needs images of at least {LPIPS.MIN_SIZE}×{LPIPS.MIN_SIZE} px, "
+                    f"{self.split} view {index} is {rgb.shape[0]}×{rgb.shape[1]}; "
+                    "its LPIPS is null",
+                    stacklevel=3,
                 )
-            progress.advance(task)
+        return {
+            "psnr": finite_or_none(float(psnr(rgb, image))),
+            "ssim": float(ssim(rgb, image)),
+            "lpips": perceptual,
+        }
+
+
+def summarize(
+    split: str, frames: list[dict[str, Any]], warmup: int, device: torch.device
+) -> dict[str, Any]:
+    """The means over the frames, render-time percentiles and peak memory."""
     memory, memory_source = peak_memory_mb(device)
 
     def mean(key: str) -> float | None:

@@ -33,7 +33,7 @@ from dyngs.engine.optim import build_optimizer, set_learning_rates
 from dyngs.engine.report import Counters, StepStats, capacity, log_step
 from dyngs.engine.writer import Writer
 from dyngs.errors import ConfigError, UserError
-from dyngs.model import DynamicGaussians, subsample_points
+from dyngs.model import CanonicalGaussians, DynamicGaussians, subsample_points
 from dyngs.renderers import renderer_name
 from dyngs.renderers.base import ContributionRenderer, Renderer, RenderOutput
 from dyngs.types import Gaussians
@@ -84,6 +84,33 @@ def initial_model(
     model.canonical.initialize(points, colors, config.gaussians)
     model.deforming = schedules.deforming(config, 0)
     return model
+
+
+def quarantine_nonfinite_gaussians(canonical: CanonicalGaussians) -> None:
+    """Zero the gradients of Gaussians with a non-finite parameter. The renderer culls
+    them, but activations still pass NaN back (exp(inf) · 0); left alone, one such
+    Gaussian would make every step non-finite. Refinement prunes them."""
+    bad = ~canonical.finite_rows()
+    for p in canonical.params().values():
+        if p.grad is not None:
+            p.grad.masked_fill_(bad.reshape(-1, *[1] * (p.dim() - 1)), 0.0)
+
+
+def all_finite(loss: Tensor, optimizer: torch.optim.Optimizer) -> Tensor:
+    """Whether the loss and every gradient are finite (0-d, on the device)."""
+    flags = [torch.isfinite(loss)]
+    for group in optimizer.param_groups:
+        flags += [torch.isfinite(p.grad).all() for p in group["params"] if p.grad is not None]
+    return torch.stack(flags).all()
+
+
+PROGRESS_COLUMNS = (
+    TextColumn("[bold]train"),
+    BarColumn(),
+    MofNCompleteColumn(),
+    TextColumn("{task.fields[info]}"),
+    TimeRemainingColumn(),
+)
 
 
 class TrainingDiverged(UserError):
@@ -153,12 +180,12 @@ class Trainer:
         terms = self.objective.terms(model, out, batch, gaussians, step)
         loss = torch.stack(list(terms.values())).sum()
         loss.backward()
-        self._quarantine_nonfinite_gaussians()
+        quarantine_nonfinite_gaussians(model.canonical)
 
         # A step whose loss or gradients are not finite never reaches the parameters, the
         # optimizer's moments or the densification statistics (one host sync per step, as
         # AMP's GradScaler does).
-        good = bool(self._all_finite(loss))
+        good = bool(all_finite(loss, self.optimizer))
         if good:
             self.lifecycle.gather(out, batch, probe)
             self.optimizer.step()
@@ -189,22 +216,6 @@ class Trainer:
             return renderer.with_contribution(gaussians, batch.camera, background)
         return renderer(gaussians, batch.camera, background)
 
-    def _quarantine_nonfinite_gaussians(self) -> None:
-        """Zero the gradients of Gaussians with a non-finite parameter. The renderer culls
-        them, but activations still pass NaN back (exp(inf) · 0); left alone, one such
-        Gaussian would make every step non-finite. Refinement prunes them."""
-        c = self.model.canonical
-        bad = ~c.finite_rows()
-        for p in c.params().values():
-            if p.grad is not None:
-                p.grad.masked_fill_(bad.reshape(-1, *[1] * (p.dim() - 1)), 0.0)
-
-    def _all_finite(self, loss: Tensor) -> Tensor:
-        flags = [torch.isfinite(loss)]
-        for group in self.optimizer.param_groups:
-            flags += [torch.isfinite(p.grad).all() for p in group["params"] if p.grad is not None]
-        return torch.stack(flags).all()
-
     def _count(self, step: int, good: bool) -> None:
         """Count a skipped step; a streak of `--max-bad-steps` stops the run."""
         counters = self.counters
@@ -233,16 +244,9 @@ class Trainer:
         cfg = self.config
         for note in self.notes():
             self.console.print(note, highlight=False, markup=False)
-        columns = (
-            TextColumn("[bold]train"),
-            BarColumn(),
-            MofNCompleteColumn(),
-            TextColumn("{task.fields[info]}"),
-            TimeRemainingColumn(),
-        )
         with (
             deferred_interrupt() as interrupted,
-            Progress(*columns, console=self.console, transient=False) as progress,
+            Progress(*PROGRESS_COLUMNS, console=self.console, transient=False) as progress,
         ):
             task = progress.add_task("train", total=cfg.max_iters, completed=self.step, info="")
             try:

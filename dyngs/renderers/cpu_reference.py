@@ -256,14 +256,28 @@ def rasterize(
         done_tiles.append(tiles[:0])
     accum = blended.new_zeros(tiles_x * tiles_y, pixels, blended.shape[1])
     accum = accum.index_copy(0, torch.cat(done_tiles), torch.cat(outputs))
+    return _image(accum, tiles_y, tiles_x, tile_size, width, height, background)
+
+
+def _image(
+    accum: Float[Tensor, "T P 5"],
+    tiles_y: int,
+    tiles_x: int,
+    tile_size: int,
+    width: int,
+    height: int,
+    background: Float[Tensor, 3],
+) -> tuple[Float[Tensor, "H W 3"], Float[Tensor, "H W 1"], Float[Tensor, "H W 1"]]:
+    """Per-tile sums of weighted (colour, depth, 1) laid out as an image: rgb over the
+    background, alpha, and expected depth."""
     image = (
         accum.view(tiles_y, tiles_x, tile_size, tile_size, -1)
         .permute(0, 2, 1, 3, 4)
         .reshape(tiles_y * tile_size, tiles_x * tile_size, -1)[:height, :width]
     )
     color, depth_sum, alpha = image[..., :3], image[..., 3:4], image[..., 4:5]
-    rgb = color + (1 - alpha) * background.to(dtype=dtype, device=device)
-    depth = depth_sum / alpha.clamp_min(torch.finfo(dtype).tiny)
+    rgb = color + (1 - alpha) * background.to(dtype=accum.dtype, device=accum.device)
+    depth = depth_sum / alpha.clamp_min(torch.finfo(accum.dtype).tiny)
     return rgb, alpha, depth
 
 
@@ -359,13 +373,26 @@ def _composite_chunk(
         # that 0/1 mask; multiplying by it is exact (× 1 or × 0) and has no gradient.
         weight = weight * zero_below(transmit.detach(), guards.transmittance_min).sign()
     if contribution is not None:
-        # Count only pixels inside the image (edge tiles overhang it). Padded slots have zero
-        # weight, so adding them to their stand-in row is harmless.
-        local = torch.arange(tile_size, device=tiles.device)
-        cols = (tiles % tiles_x)[:, None] * tile_size + local
-        rows_ = (tiles // tiles_x)[:, None] * tile_size + local
-        inside = (rows_[:, :, None] < image_size[1]) & (cols[:, None, :] < image_size[0])
-        inside = inside.reshape(len(tiles), -1, 1).to(weight.dtype)
-        per_pair = (weight.detach() * inside).sum(dim=1).reshape(-1).to(contribution.dtype)
-        contribution.index_add_(0, gid.reshape(-1), per_pair)
+        _add_contribution(contribution, weight.detach(), gid, tiles, tiles_x, tile_size, image_size)
     return weight @ gather(blended, gid)
+
+
+def _add_contribution(
+    contribution: Float[Tensor, " N"],
+    weight: Float[Tensor, "C P K"],
+    gid: Int[Tensor, "C K"],
+    tiles: Int[Tensor, " C"],
+    tiles_x: int,
+    tile_size: int,
+    image_size: tuple[int, int],
+) -> None:
+    """Add each Gaussian's blending weights, summed over the pixels of `tiles` that lie
+    inside the image (edge tiles overhang it), to `contribution`. Padded slots have zero
+    weight, so adding them to their stand-in row is harmless."""
+    local = torch.arange(tile_size, device=tiles.device)
+    cols = (tiles % tiles_x)[:, None] * tile_size + local
+    rows = (tiles // tiles_x)[:, None] * tile_size + local
+    inside = (rows[:, :, None] < image_size[1]) & (cols[:, None, :] < image_size[0])
+    inside = inside.reshape(len(tiles), -1, 1).to(weight.dtype)
+    per_pair = (weight * inside).sum(dim=1).reshape(-1).to(contribution.dtype)
+    contribution.index_add_(0, gid.reshape(-1), per_pair)

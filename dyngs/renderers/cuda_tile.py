@@ -35,7 +35,7 @@ from torch import Tensor
 from dyngs.errors import RendererUnavailable
 from dyngs.geometry import normalize_quaternion
 from dyngs.renderers.base import Guards, RenderOutput
-from dyngs.renderers.stages import prepare
+from dyngs.renderers.stages import Prepared, prepare
 from dyngs.types import Camera, Gaussians
 
 
@@ -83,12 +83,44 @@ class CudaTileRenderer:
     ) -> RenderOutput:
         """gsplat does not report each Gaussian's contribution, so this is not a
         `ContributionRenderer`: a run with it prunes by opacity and size alone, and says so."""
-        g, guards = gaussians, self.guards
-        device, dtype = g.means.device, g.means.dtype
-        n = len(g)
-        # Only the coefficients in use are handed over (`prepare` keeps those alone), so that
-        # nothing gsplat reads can hold a value the finiteness check did not see.
+        g = gaussians
         ready = prepare(g, camera)
+        inputs = self._inputs(g, camera, ready)
+        rgbd, alpha, meta = self._rasterization(
+            **inputs,
+            width=camera.width,
+            height=camera.height,
+            near_plane=camera.near,
+            far_plane=camera.far,
+            eps2d=self.guards.eps2d,
+            sh_degree=g.sh_degree,
+            packed=self.config.packed,
+            tile_size=self.config.tile_size,
+            backgrounds=background.to(device=g.means.device, dtype=g.means.dtype)[None],
+            render_mode="RGB+ED",
+            absgrad=self.config.absgrad,
+            rasterize_mode="antialiased" if self.config.antialiased else "classic",
+        )
+        means2d, radii = self._per_gaussian(meta, len(g))
+        # gsplat may give a radius to a row it draws nothing of (one culled here, or too
+        # faint: o < 1/255); as in the reference, such rows are not visible and have radius 0.
+        visible = (radii > 0).all(dim=-1) & ready.finite & ready.in_depth
+        visible &= inputs["opacities"] >= self.guards.alpha_min
+        return RenderOutput(
+            rgb=rgbd[0, ..., :3],
+            alpha=alpha[0],
+            depth=rgbd[0, ..., 3:4],
+            means2d=means2d,
+            radii=torch.where(visible[:, None], radii, 0).int(),
+            visible=visible,
+            num_nonfinite=ready.num_nonfinite,
+        )
+
+    def _inputs(self, g: Gaussians, camera: Camera, ready: Prepared) -> dict[str, Tensor]:
+        """gsplat's per-Gaussian inputs and camera, from the prepared Gaussians. Only the
+        colour coefficients in use are handed over (`prepare` keeps those alone), so that
+        nothing gsplat reads can hold a value the finiteness check did not see."""
+        device, dtype = g.means.device, g.means.dtype
         K = torch.tensor(
             [[camera.fx, 0.0, camera.cx], [0.0, camera.fy, camera.cy], [0.0, 0.0, 1.0]],
             device=device,
@@ -101,65 +133,38 @@ class CudaTileRenderer:
         # unchanged when R is orthonormal; a float32 R is so only to ~1e-7, which far from
         # the origin moves the camera centre gsplat derives by ~1e-7·|t|: keep
         # world_to_camera in float64 there (docs/NUMERICS.md).
-        means = ready.relative_means().to(dtype)
-        # gsplat culls only z < near; the guard table culls z ≤ near (and z ≥ far), decided
-        # in `prepare`: a culled row gets opacity 0, so gsplat draws nothing of it.
-        finite, in_depth = ready.finite, ready.in_depth
-        opacities = torch.where(in_depth, ready.opacities, 0).to(dtype).clamp(0, guards.alpha_max)
         viewmat = torch.eye(4, device=device, dtype=torch.float64)
         viewmat[:3, :3] = ready.rotation
         viewmat[:3, 3] = ready.translation + ready.rotation @ ready.center
-        viewmat = viewmat.to(dtype)
+        # gsplat culls only z < near; the guard table culls z ≤ near (and z ≥ far), decided
+        # in `prepare`: a culled row gets opacity 0, so gsplat draws nothing of it.
+        opacities = torch.where(ready.in_depth, ready.opacities, 0).to(dtype)
         # gsplat normalises quaternions itself, and a zero one would become NaN there; the
         # guard table makes it the identity rotation, as `quaternion_to_rotation` does.
-        quats = normalize_quaternion(ready.quats.to(dtype), guards.quat_eps)
+        quats = normalize_quaternion(ready.quats.to(dtype), self.guards.quat_eps)
         identity = torch.tensor([1.0, 0.0, 0.0, 0.0], device=device, dtype=quats.dtype)
-        quats = torch.where((quats == 0).all(dim=-1, keepdim=True), identity, quats)
-        rgbd, alpha, meta = self._rasterization(
-            means=means,
-            quats=quats,
-            scales=ready.scales.to(dtype),
-            opacities=opacities,
-            colors=ready.colors,
-            viewmats=viewmat[None],
-            Ks=K[None],
-            width=camera.width,
-            height=camera.height,
-            near_plane=camera.near,
-            far_plane=camera.far,
-            eps2d=guards.eps2d,
-            sh_degree=g.sh_degree,
-            packed=self.config.packed,
-            tile_size=self.config.tile_size,
-            backgrounds=background.to(device=device, dtype=dtype)[None],
-            render_mode="RGB+ED",
-            absgrad=self.config.absgrad,
-            rasterize_mode="antialiased" if self.config.antialiased else "classic",
-        )
-        means2d = meta["means2d"]
-        radii = meta["radii"]
+        return {
+            "means": ready.relative_means().to(dtype),
+            "quats": torch.where((quats == 0).all(dim=-1, keepdim=True), identity, quats),
+            "scales": ready.scales.to(dtype),
+            "opacities": opacities.clamp(0, self.guards.alpha_max),
+            "colors": ready.colors,
+            "viewmats": viewmat.to(dtype)[None],
+            "Ks": K[None],
+        }
+
+    def _per_gaussian(self, meta: dict[str, Tensor], n: int) -> tuple[Tensor, Tensor]:
+        """2D means (keeping their gradient) and per-axis radii, one row per Gaussian."""
+        means2d, radii = meta["means2d"], meta["radii"]
         if self.config.packed:
             # Packed mode lists only the drawn Gaussians; scatter back to one row each.
             ids = meta["gaussian_ids"]
-            full = means2d.new_zeros(n, 2).index_copy(0, ids, means2d)
-            full_radii = radii.new_zeros(n, *radii.shape[1:]).index_copy(0, ids, radii)
-            means2d_out, radii = full, full_radii
+            means2d = means2d.new_zeros(n, 2).index_copy(0, ids, means2d)
+            radii = radii.new_zeros(n, *radii.shape[1:]).index_copy(0, ids, radii)
         else:
-            means2d_out, radii = means2d[0], radii[0]
+            means2d, radii = means2d[0], radii[0]
         if radii.ndim == 1:  # gsplat < 1.5 returns one radius per Gaussian
             radii = radii[:, None].expand(-1, 2)
-        if means2d_out.requires_grad:
-            means2d_out.retain_grad()
-        # gsplat may give a radius to a row it draws nothing of (one culled here, or too
-        # faint: o < 1/255); as in the reference, such rows are not visible and have radius 0.
-        visible = (radii > 0).all(dim=-1) & finite & in_depth
-        visible &= opacities >= guards.alpha_min
-        return RenderOutput(
-            rgb=rgbd[0, ..., :3],
-            alpha=alpha[0],
-            depth=rgbd[0, ..., 3:4],
-            means2d=means2d_out,
-            radii=torch.where(visible[:, None], radii, 0).int(),
-            visible=visible,
-            num_nonfinite=ready.num_nonfinite,
-        )
+        if means2d.requires_grad:
+            means2d.retain_grad()
+        return means2d, radii

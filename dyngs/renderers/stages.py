@@ -123,27 +123,13 @@ def project(
     """Project Gaussians onto the image plane of `camera` (EWA splatting), from `prepare`."""
     g = gaussians
     ready = prepare(gaussians, camera)
-    quats, scales, opacities = ready.quats, ready.scales, ready.opacities
-    finite, rot = ready.finite, ready.rotation
+    opacities, finite = ready.opacities, ready.finite
     x, y, z = ready.camera_means.unbind(-1)
     z = torch.where(ready.in_depth, z, 1.0)  # culled rows never divide by a tiny or negative depth
 
     fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
     means2d = torch.stack((fx * x / z + cx, fy * y / z + cy), dim=-1)
-
-    # The Jacobian of the perspective map sees the centre clamped to 1.3× the half field of
-    # view, so Gaussians far off-axis do not get enormous, unstable footprints.
-    lim_x = guards.off_axis * 0.5 * camera.width / fx
-    lim_y = guards.off_axis * 0.5 * camera.height / fy
-    tx = (x / z).clamp(-lim_x, lim_x) * z
-    ty = (y / z).clamp(-lim_y, lim_y) * z
-    zeros = torch.zeros_like(z)
-    jac = torch.stack(
-        (fx / z, zeros, -fx * tx / (z * z), zeros, fy / z, -fy * ty / (z * z)), dim=-1
-    ).reshape(-1, 2, 3)
-    t = jac @ rot
-    cov2d = t @ covariance_3d(quats, scales, guards.quat_eps) @ t.transpose(1, 2)
-    a, b, c = cov2d[:, 0, 0], cov2d[:, 0, 1], cov2d[:, 1, 1]
+    a, b, c = covariance_2d(x, y, z, ready, camera, guards)
     a_d, c_d = a + guards.eps2d, c + guards.eps2d
     det = a_d * c_d - b * b
     if antialiased:
@@ -184,6 +170,34 @@ def project(
         visible=visible,
         num_nonfinite=ready.num_nonfinite,
     )
+
+
+def covariance_2d(
+    x: Float[Tensor, " N"],
+    y: Float[Tensor, " N"],
+    z: Float[Tensor, " N"],
+    ready: Prepared,
+    camera: Camera,
+    guards: Guards,
+) -> tuple[Float[Tensor, " N"], Float[Tensor, " N"], Float[Tensor, " N"]]:
+    """The screen-space covariance J W Σ Wᵀ Jᵀ (EWA, Zwicker et al. 2001) of Gaussians at
+    camera-space (x, y, z), as its entries (a, b, c) = (Σxx, Σxy, Σyy), before dilation.
+    Culled rows' z must already be replaced, so that nothing divides by a tiny or negative
+    depth."""
+    fx, fy = camera.fx, camera.fy
+    # The Jacobian of the perspective map sees the centre clamped to 1.3× the half field of
+    # view, so Gaussians far off-axis do not get enormous, unstable footprints.
+    lim_x = guards.off_axis * 0.5 * camera.width / fx
+    lim_y = guards.off_axis * 0.5 * camera.height / fy
+    tx = (x / z).clamp(-lim_x, lim_x) * z
+    ty = (y / z).clamp(-lim_y, lim_y) * z
+    zeros = torch.zeros_like(z)
+    jac = torch.stack(
+        (fx / z, zeros, -fx * tx / (z * z), zeros, fy / z, -fy * ty / (z * z)), dim=-1
+    ).reshape(-1, 2, 3)
+    t = jac @ ready.rotation
+    cov2d = t @ covariance_3d(ready.quats, ready.scales, guards.quat_eps) @ t.transpose(1, 2)
+    return cov2d[:, 0, 0], cov2d[:, 0, 1], cov2d[:, 1, 1]
 
 
 def pixel_range(

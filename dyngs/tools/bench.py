@@ -447,6 +447,18 @@ def pareto_front(costs: Sequence[float], scores: Sequence[float]) -> list[int]:
 MARKERS = ("o", "s", "^", "D", "v", "P", "X", "*", "<", ">", "h", "p")
 
 
+def _log_scale_when_wide(ax: Any, values: list[float]) -> None:
+    """A logarithmic x axis, labelled 1, 2, 5, 10, 20, … (not 2×10⁰), when the values span
+    more than a factor of 20."""
+    from matplotlib import ticker
+
+    if values and min(values) > 0 and max(values) / min(values) > 20:
+        ax.set_xscale("log")
+        ax.xaxis.set_major_locator(ticker.LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
+        ax.xaxis.set_major_formatter(ticker.FuncFormatter(lambda v, _: f"{v:g}"))
+        ax.xaxis.set_minor_formatter(ticker.NullFormatter())
+
+
 def plot_results(rows: list[dict[str, Any]], path: Path, title: str) -> None:
     """Two panels, PSNR against median render time and against training time; one marker
     per point (legend), the Pareto front (higher PSNR, lower cost) joined and ringed."""
@@ -454,7 +466,6 @@ def plot_results(rows: list[dict[str, Any]], path: Path, title: str) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from matplotlib import ticker
 
     panels = (
         ("render_ms_median", "render time per frame, median (ms)"),
@@ -487,13 +498,7 @@ def plot_results(rows: list[dict[str, Any]], path: Path, title: str) -> None:
             )[0]
             ax.scatter(xs, ys, s=220, facecolors="none", edgecolors="crimson", linewidths=1.8,
                        zorder=4)  # fmt: skip
-        values = [rows[i][key] for i in usable]
-        if values and min(values) > 0 and max(values) / min(values) > 20:
-            ax.set_xscale("log")
-            # Plain numbers (1, 2, 5, 10, 20, …) instead of 2×10⁰-style labels.
-            ax.xaxis.set_major_locator(ticker.LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
-            ax.xaxis.set_major_formatter(ticker.FuncFormatter(lambda v, _: f"{v:g}"))
-            ax.xaxis.set_minor_formatter(ticker.NullFormatter())
+        _log_scale_when_wide(ax, [rows[i][key] for i in usable])
         ax.set_xlabel(xlabel)
         ax.set_ylabel("PSNR (dB)")
         ax.grid(True, alpha=0.3)
