@@ -58,9 +58,9 @@ class LossConfig:
     object) counts 1 + this many times in the photometric loss: DyNeRF's ray importance
     sampling by the global median (ISG; Li et al. 2022, Neural 3D Video Synthesis) as a
     loss weight, since a rasterizer draws every pixel anyway. Small moving objects are
-    otherwise a few pixels in thousands: 10 makes every seed of mujoco-collision find its
-    spheres, but costs 0.9 dB on close_proximity, whose spheres are found without it
-    (docs/TRAINING.md). No effect on other captures."""
+    otherwise a few pixels in thousands and may be missed; where objects are found without
+    it, the weights take fit from the rest of the image (measured in docs/TRAINING.md).
+    No effect on other captures."""
     plane_tv: float = 1.2e-3
     """Total variation of the spatial feature planes (K-Planes)."""
     time_smoothness: float = 6e-2
@@ -115,9 +115,8 @@ class TrainConfig:
     frontier_share: float = 0.5
     """While the window widens, this share of the steps trains on a view from its newest
     `frontier-span` of time, the rest on any view in it. Drawing from the whole window
-    alone, a new time gets a share of the steps that shrinks as the window grows; on the
-    built-in scene the deformation then fell behind the motion after t ≈ 0.6 and never
-    caught up (docs/CAPACITY.md). 0 turns it off."""
+    alone, a new time gets a share of the steps that shrinks as the window grows, and the
+    deformation can fall behind the motion for good (docs/CAPACITY.md). 0 turns it off."""
     frontier_span: float = 0.1
     """Width in t of the newest part of the window that `frontier-share` draws from (the
     latest views when none is that recent)."""

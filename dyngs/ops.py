@@ -26,8 +26,7 @@ def finite_rows(*tensors: Tensor) -> Bool[Tensor, " N"]:
     The same as `torch.isfinite(t).all(dim=1)` over the row-flattened tensors: x·0 is ±0
     for a finite x and NaN for ±Inf or NaN, so a row is finite exactly when its sum of x·0
     is zero (a sum of zeros cannot overflow). `isfinite` builds three temporaries per
-    tensor; on the benchmark CPU this was 11× faster on the 59 raw parameters of 12k
-    Gaussians and about as fast on rows of 3 or 4.
+    tensor; this builds one (timings in docs/RENDERER.md).
     """
     n = tensors[0].shape[0]
     # An explicit row width, not -1: reshape cannot infer -1 for an empty scene (N = 0).

@@ -2,7 +2,7 @@
 
 Letters used in shapes: N Gaussians, K spherical-harmonic coefficients per channel.
 
-Conventions (DESIGN.md): cameras are OpenCV (x right, y down, z forward), given as a
+Conventions (docs/DESIGN.md): cameras are OpenCV (x right, y down, z forward), given as a
 world-to-camera 4×4 matrix; pixel centres sit at +0.5, so pixel (row i, column j) is
 the point (j + 0.5, i + 0.5) on the image plane.
 """
@@ -18,7 +18,7 @@ from jaxtyping import Float
 from torch import Tensor
 
 NEAR_PLANE = 0.01
-"""Default near plane: Gaussians at depth ≤ this are culled (DESIGN.md guard table)."""
+"""Default near plane: Gaussians at depth ≤ this are culled (the guard table of docs/DESIGN.md)."""
 
 
 @dataclass(frozen=True)

@@ -114,6 +114,7 @@ def install_dummy_plugin(site: Path) -> None:
     (info / "entry_points.txt").write_text(ENTRY_POINTS)
 
 
+@pytest.mark.slow
 def test_a_plugin_field_renderer_format_and_loss_term_train(tmp_path: Path) -> None:
     site = tmp_path / "site"
     site.mkdir()

@@ -60,6 +60,7 @@ def test_every_preset_runs_two_steps(method: str, tmp_path: Path) -> None:
     assert (run / "checkpoint.pt").is_file()
 
 
+@pytest.mark.slow
 def test_default_scene_and_lpips(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """The README's first command, shortened; LPIPS is reported when its weights exist."""
     if not WEIGHTS.is_dir():

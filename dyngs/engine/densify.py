@@ -60,7 +60,7 @@ class DensifyConfig:
     """Before each refinement, render this many training views of the time window (all of
     them when fewer; spread evenly over time), without gradient, and prune by the largest
     share each Gaussian makes of any of them. 0: only the views drawn since the last
-    refinement count (on the demo, 70-87 % of the window's views; docs/CAPACITY.md)."""
+    refinement count, which miss some of the window's views (docs/CAPACITY.md)."""
     max_gaussians: int | None = None
     """The Gaussian budget: densification never goes beyond it (highest gradients first). The
     cap grows linearly toward it over the densification window. None: sized from the data

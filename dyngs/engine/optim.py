@@ -35,8 +35,8 @@ class OptimConfig:
     sh_dc: float = 2.5e-3
     sh_rest: float = 2.5e-3 / 20
     grid: tuple[float, float] = (1.6e-2, 1.6e-4)
-    """Feature planes of a plane-based field (10× 4DGaussians': our schedules are ~10× shorter,
-    and at their rates the motion of the demo scene was not learned in 3k steps)."""
+    """Feature planes of a plane-based field: 10× 4DGaussians' rates, because our schedules
+    are about 10× shorter than theirs (docs/TRAINING.md)."""
     network: tuple[float, float] = (1.6e-3, 1.6e-5)
     """MLP weights of the field and the deformation head (10× 4DGaussians', as above)."""
     eps: float = 1e-15
@@ -45,8 +45,7 @@ class OptimConfig:
     """Hold the field's and the head's rates (`grid`, `network`) at their start while the
     training views' time window widens (`--time-ramp`), and decay them over the rest of
     the run, so that each time is learned at the rate the first ones had. Off by default:
-    on the built-in scene it rescued the motion after t ≈ 0.6 with one seed (+1.0 dB)
-    and not with another (−0.3 dB); docs/CAPACITY.md."""
+    it did not help consistently across seeds (docs/CAPACITY.md)."""
 
 
 DEFORMATION_GROUPS = ("grid", "network")

@@ -19,7 +19,7 @@ def space_time(
     box: SceneBox, xyz: Float[Tensor, "N 3"], t: Float[Tensor, "N 1"]
 ) -> Float[Tensor, "N 4"]:
     """(x, y, z, t) in field units: space normalised by `box` to [-1, 1]³ and t ∈ [0, 1]
-    mapped to 2t − 1 (DESIGN.md). Not clamped. `t` may also be [1, 1], one time for all.
+    mapped to 2t − 1 (docs/DESIGN.md). Not clamped. `t` may also be [1, 1], one time for all.
 
     A non-finite coordinate (a NaN or ±Inf mean, which the renderers cull and count) is
     replaced by 0, the box centre or mid-time, with zero gradient: a NaN reaching

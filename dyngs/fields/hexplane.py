@@ -54,7 +54,7 @@ class HexPlaneConfig:
     multiplied (Wu et al. 2024)."""
     features: int = 16
     """Feature channels per plane and scale; the field outputs features × len(multires).
-    (4DGaussians uses 32; 16 trains as well on our scenes at two-thirds of the cost.)"""
+    (4DGaussians uses 32.)"""
     init_range: tuple[float, float] = (0.1, 0.5)
     """Spatial planes start uniform in this range (K-Planes); time planes start at exactly 1."""
 

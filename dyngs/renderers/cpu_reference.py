@@ -310,9 +310,8 @@ def zero_below(x: Tensor, floor: float) -> Tensor:
     """`x` where x ≥ `floor` (compared in x's dtype), 0 elsewhere; the gradient passes where
     x is kept. The same values and gradient as `x.masked_fill(x < floor, 0)`, bit for bit,
     without a boolean mask: `F.threshold` keeps x > θ, and θ here is the largest number of
-    x's dtype below `floor`. On a random mask it ran 20-50× faster than `masked_fill` on
-    the benchmark CPU; on trained frames, whose masks come in long runs, rasterisation was
-    5-12 % faster (docs/RENDERER.md)."""
+    x's dtype below `floor`. It is faster than `masked_fill` on CPUs, which pays for
+    building and reading a boolean mask (timings in docs/RENDERER.md)."""
     level = torch.tensor(floor, dtype=x.dtype)
     theta = torch.nextafter(level, torch.tensor(-math.inf, dtype=x.dtype))
     return F.threshold(x, float(theta), 0.0)

@@ -168,6 +168,7 @@ def test_flags_follow_densification_and_survive_resume(tmp_path: Path) -> None:
     resumed.train_step(3)
 
 
+@pytest.mark.slow
 def test_a_still_scene_trains_as_a_static_scene(tmp_path: Path) -> None:
     still = dataclasses.replace(TINY_SCENE, motion=False)
     config = tiny_config(

@@ -181,6 +181,7 @@ def test_resume_is_bit_identical_on_cpu(tmp_path: Path) -> None:
     assert_same_state(straight.model.state_dict(), resumed.model.state_dict())
 
 
+@pytest.mark.slow
 def test_real_scene_loss_falls_and_psnr_rises(tmp_path: Path) -> None:
     """A short run on ../shared/data/lego-tiny (100², black background)."""
     path = shared_scene("lego-tiny")

@@ -164,7 +164,7 @@ def _model() -> DynamicGaussians:
 
 @pytest.mark.parametrize("time", [-1e-9, 1 + 1e-9, -0.5, 1.5, math.nan, math.inf, -math.inf])
 def test_model_time_outside_0_1_is_a_clear_error(time: float) -> None:
-    # Datasets give t ∈ [0, 1] (DESIGN.md); the model refuses anything else by name.
+    # Datasets give t ∈ [0, 1] (docs/DESIGN.md); the model refuses anything else by name.
     model = _model()
     with pytest.raises(ValueError, match=r"time must be in \[0, 1\]"):
         model.at(time, sh_degree=1)

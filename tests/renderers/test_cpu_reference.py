@@ -137,6 +137,7 @@ def _tiny_scene(sh_degree: int | None, seed: int = 0) -> tuple[Gaussians, Camera
     return Gaussians(means, quats, scales, opacities, colors, sh_degree), camera, background
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("sh_degree", [None, 3])
 @pytest.mark.parametrize("antialiased", [False, True])
 def test_gradcheck_gaussian_parameters(sh_degree: int | None, antialiased: bool) -> None:
@@ -157,6 +158,7 @@ def test_gradcheck_gaussian_parameters(sh_degree: int | None, antialiased: bool)
     assert torch.autograd.gradcheck(image, inputs, eps=1e-6, atol=1e-6, rtol=1e-4)
 
 
+@pytest.mark.slow
 def test_gradcheck_screen_space_means() -> None:
     """The image as a function of the 2D means alone, the quantity densification reads."""
     gaussians, camera, background = _tiny_scene(None, seed=2)

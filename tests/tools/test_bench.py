@@ -30,6 +30,7 @@ def _bench(out: Path, data: Path, *extra: str) -> None:
           "--warmup", "0", *extra, "--", *TINY_FLAGS])  # fmt: skip
 
 
+@pytest.mark.slow
 def test_sweep_writes_results_and_resumes(tmp_path: Path, tiny_data: Path) -> None:
     out = tmp_path / "bench"
     _bench(out, tiny_data)
@@ -113,6 +114,7 @@ def test_builtin_sweeps_are_valid_train_flags(name: str, tmp_path: Path) -> None
     assert len(points) >= 2 and len({p.name for p in points}) == len(points)
 
 
+@pytest.mark.slow
 def test_seeds_give_each_point_a_spread_and_a_paired_change(
     tmp_path: Path, tiny_data: Path
 ) -> None:

@@ -26,6 +26,7 @@ def test_code_versions_are_parsed_and_bad_ones_refused(tmp_path: Path) -> None:
         rerender.parse_codes([f"a={ROOT}", f"a={ROOT}"])
 
 
+@pytest.mark.slow
 def test_every_run_is_timed_with_every_code_version(
     tiny_run: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -40,6 +41,7 @@ def test_every_run_is_timed_with_every_code_version(
         assert row["render_ms_median"] > 0 and row["deformation_ms"] >= 0
 
 
+@pytest.mark.slow
 def test_threads_reach_each_evaluation(
     tiny_run: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
