@@ -32,7 +32,7 @@ from dyngs.datamanagers.datamanager import DataManager, load_scene
 from dyngs.datamanagers.scene_info import SCENE_FILE, SceneInfo
 from dyngs.engine import schedules
 from dyngs.engine.checkpoint import load_checkpoint, upgrade_checkpoint
-from dyngs.engine.trainer import CHECKPOINT_NAME, Trainer, resolve_device
+from dyngs.engine.trainer import CHECKPOINT_NAME, StepHook, Trainer, resolve_device
 from dyngs.engine.writer import NullWriter, TensorBoardWriter, Writer
 from dyngs.errors import ConfigError, DatasetError
 from dyngs.io import write_json
@@ -87,15 +87,19 @@ def new_run_dir(config: TrainConfig) -> Path:
 
 
 def run_training(
-    config: TrainConfig, run_dir: Path, console: Console, resume: bool = False
+    config: TrainConfig,
+    run_dir: Path,
+    console: Console,
+    resume: bool = False,
+    hooks: Sequence[StepHook] = (),
 ) -> dict[str, Any]:
     """Train into `run_dir` (continuing its checkpoint with `resume`) and write
-    metrics.json; returns the metrics."""
+    metrics.json; returns the metrics. `hooks` are called after every step."""
     writer: Writer = (
         TensorBoardWriter(run_dir / "tensorboard") if config.tensorboard else NullWriter()
     )
     try:
-        trainer = Trainer(config, run_dir, writer, console)
+        trainer = Trainer(config, run_dir, writer, console, hooks=hooks)
         if resume:
             trainer.load(run_dir / CHECKPOINT_NAME)
             console.print(f"resuming {run_dir} at step {trainer.step}")

@@ -9,7 +9,7 @@ happens to the model between steps (`dyngs.engine.lifecycle`), what is reported
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -113,6 +113,11 @@ PROGRESS_COLUMNS = (
 )
 
 
+StepHook = Callable[["Trainer", StepStats], None]
+"""Called after every training step with the trainer and the step's stats, in the training
+thread (a viewer shows the model, and may pause training by not returning)."""
+
+
 class TrainingDiverged(UserError):
     """Too many consecutive steps had non-finite losses or gradients."""
 
@@ -128,8 +133,10 @@ class Trainer:
         writer: Writer,
         console: Console | None = None,
         scene: SceneData | None = None,
+        hooks: Sequence[StepHook] = (),
     ) -> None:
         self.run_dir = run_dir
+        self.hooks = list(hooks)
         self.writer = writer
         self.console = console or Console()
         self.device = resolve_device(config.device)
@@ -287,6 +294,8 @@ class Trainer:
             if cfg.checkpoint_every > 0 and self.step % cfg.checkpoint_every == 0:
                 self.save()
             show(info)
+            for hook in self.hooks:
+                hook(self, stats)
             if interrupted():  # Ctrl-C during the step: stop now that it is whole
                 raise KeyboardInterrupt
 
@@ -299,21 +308,13 @@ class Trainer:
             "train/iterations_per_second": rate,
             "train/nonfinite_gaussians_culled": culled,
         }
-        return log_step(
-            self.writer, self.step, stats, self.model, self.optimizer, self.counters, extra
-        )
+        return log_step(self.writer, self.step, stats, self.model, self.optimizer,
+                        self.counters, extra)  # fmt: skip
 
     def evaluate(self) -> dict[str, Any]:
         split = self.config.eval_split
-        metrics = evaluate(
-            self.model,
-            self.renderer,
-            self.data,
-            split,
-            image_dir=self.run_dir / split,
-            device=self.device,
-            console=self.console,
-        )
+        metrics = evaluate(self.model, self.renderer, self.data, split, self.run_dir / split,
+                           self.device, self.console)  # fmt: skip
         metrics |= {
             "num_gaussians": len(self.model.canonical),
             **capacity(self.model, self.counters),

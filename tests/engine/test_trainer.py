@@ -238,3 +238,13 @@ def test_the_importance_pass_is_timed_and_survives_resume(tmp_path: Path, views:
     resumed = tiny_trainer(tmp_path, densify=densify, max_iters=9)
     resumed.load(trainer.checkpoint_path())
     assert resumed.lifecycle.importance_seconds == spent
+
+
+def test_hooks_see_every_step_in_order(tmp_path: Path) -> None:
+    seen: list[tuple[int, bool]] = []
+    config = tiny_config(max_iters=3, warmup_iters=1)
+    trainer = Trainer(
+        config, tmp_path, NullWriter(), hooks=[lambda t, s: seen.append((t.step, s.applied))]
+    )
+    trainer.train()
+    assert seen == [(1, True), (2, True), (3, True)]
