@@ -37,7 +37,15 @@ from torch import Tensor
 from dyngs.errors import ConfigError
 from dyngs.ops import gather
 from dyngs.renderers.base import Guards, RenderOutput
-from dyngs.renderers.stages import GEOMETRY_DTYPE, ScreenGaussians, pixel_range, project
+from dyngs.renderers.stages import (
+    GEOMETRY_DTYPE,
+    ScreenGaussians,
+    TileBins,
+    bin_tiles,
+    finish_image,
+    pixel_range,
+    project,
+)
 from dyngs.types import Camera, Gaussians
 
 # A padded slot's exponent row: α = exp(-1e4) = 0, so it is skipped like any α < 1/255.
@@ -120,15 +128,6 @@ class CpuReferenceRenderer:
         return self(gaussians, camera, background, contribution=True)
 
 
-@dataclass
-class _Bins:
-    """Tile–Gaussian intersections, sorted by tile, then by depth within a tile."""
-
-    gaussian: Int[Tensor, " M"]
-    tile_start: Int[Tensor, " T"]
-    tile_count: Int[Tensor, " T"]
-
-
 # Compositing costs about (pixel, Gaussian) pairs plus this many times the (tile, Gaussian)
 # pairs: each pair is binned, sorted and gathered, and its exponent's coefficients are
 # built once for all its tile's pixels. Least squares over 74 frames of seven trained
@@ -155,27 +154,6 @@ def choose_tile_size(screen: ScreenGaussians, width: int, height: int) -> int:
     counts = tile_pair_counts(screen, width, height, _TILE_SIZES)
     costs = [n * (_PAIR_COST + size * size) for n, size in zip(counts, _TILE_SIZES, strict=True)]
     return _TILE_SIZES[costs.index(min(costs))]
-
-
-def _bin(screen: ScreenGaussians, width: int, height: int, tile_size: int) -> _Bins:
-    tiles_x = -(-width // tile_size)
-    tiles_y = -(-height // tile_size)
-    device = screen.means2d.device
-    visible = screen.visible.nonzero().squeeze(1)
-    order = visible[torch.argsort(screen.depths.detach()[visible], stable=True)]
-    lo, hi = pixel_range(screen.means2d.detach()[order], screen.extents[order], width, height)
-    t_lo, t_hi = lo // tile_size, hi // tile_size
-    span = t_hi - t_lo + 1  # [V, 2] tiles along x and y
-    per_gaussian = span[:, 0] * span[:, 1]
-    owner = torch.repeat_interleave(torch.arange(len(order), device=device), per_gaussian)
-    rank = torch.arange(len(owner), device=device) - (per_gaussian.cumsum(0) - per_gaussian)[owner]
-    tile_x = t_lo[owner, 0] + rank % span[owner, 0]
-    tile_y = t_lo[owner, 1] + rank // span[owner, 0]
-    tile = tile_y * tiles_x + tile_x
-    # A stable sort by tile keeps the global depth order inside every tile.
-    tile, perm = torch.sort(tile, stable=True)
-    count = torch.bincount(tile, minlength=tiles_x * tiles_y)
-    return _Bins(gaussian=order[owner[perm]], tile_start=count.cumsum(0) - count, tile_count=count)
 
 
 def _tile_pixel_basis(tile_size: int, device: torch.device) -> Float[Tensor, "P 6"]:
@@ -220,7 +198,7 @@ def rasterize(
     dtype, device = screen.colors.dtype, screen.colors.device
     tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
     pixels = tile_size * tile_size
-    bins = _bin(screen, width, height, tile_size)
+    bins = bin_tiles(screen, width, height, tile_size)
 
     # Per-Gaussian quantities blended with the same weights: colour, depth, and 1 (alpha).
     blended = torch.cat(
@@ -275,10 +253,7 @@ def _image(
         .permute(0, 2, 1, 3, 4)
         .reshape(tiles_y * tile_size, tiles_x * tile_size, -1)[:height, :width]
     )
-    color, depth_sum, alpha = image[..., :3], image[..., 3:4], image[..., 4:5]
-    rgb = color + (1 - alpha) * background.to(dtype=accum.dtype, device=accum.device)
-    depth = depth_sum / alpha.clamp_min(torch.finfo(accum.dtype).tiny)
-    return rgb, alpha, depth
+    return finish_image(image, background)
 
 
 # A chunk pads every tile to the depth complexity of its busiest one; it ends before a tile
@@ -319,7 +294,7 @@ def zero_below(x: Tensor, floor: float) -> Tensor:
 
 def _composite_chunk(
     screen: ScreenGaussians,
-    bins: _Bins,
+    bins: TileBins,
     tiles: Int[Tensor, " C"],
     depth_complexity: int,
     tiles_x: int,

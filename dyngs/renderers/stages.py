@@ -212,3 +212,50 @@ def pixel_range(
     hi = torch.floor(torch.minimum((means2d + extents - 0.5).clamp_min(-1), size)).long()
     limit = size.long() - 1
     return lo.clamp_min(0), torch.minimum(hi, limit)
+
+
+@dataclass
+class TileBins:
+    """Tile–Gaussian intersections (M of them over T tiles), sorted by tile, then by depth
+    within a tile: tile t's Gaussians, front to back, are
+    `gaussian[tile_start[t] : tile_start[t] + tile_count[t]]`."""
+
+    gaussian: Int[Tensor, " M"]
+    tile_start: Int[Tensor, " T"]
+    tile_count: Int[Tensor, " T"]
+
+
+def bin_tiles(screen: ScreenGaussians, width: int, height: int, tile_size: int) -> TileBins:
+    """Every visible Gaussian in every tile its extent box touches, in depth order. The
+    stage between `project` and compositing for the tile rasterizers."""
+    tiles_x = -(-width // tile_size)
+    tiles_y = -(-height // tile_size)
+    device = screen.means2d.device
+    visible = screen.visible.nonzero().squeeze(1)
+    order = visible[torch.argsort(screen.depths.detach()[visible], stable=True)]
+    lo, hi = pixel_range(screen.means2d.detach()[order], screen.extents[order], width, height)
+    t_lo, t_hi = lo // tile_size, hi // tile_size
+    span = t_hi - t_lo + 1  # [V, 2] tiles along x and y
+    per_gaussian = span[:, 0] * span[:, 1]
+    owner = torch.repeat_interleave(torch.arange(len(order), device=device), per_gaussian)
+    rank = torch.arange(len(owner), device=device) - (per_gaussian.cumsum(0) - per_gaussian)[owner]
+    tile_x = t_lo[owner, 0] + rank % span[owner, 0]
+    tile_y = t_lo[owner, 1] + rank // span[owner, 0]
+    tile = tile_y * tiles_x + tile_x
+    # A stable sort by tile keeps the global depth order inside every tile.
+    tile, perm = torch.sort(tile, stable=True)
+    count = torch.bincount(tile, minlength=tiles_x * tiles_y)
+    start = count.cumsum(0) - count
+    return TileBins(gaussian=order[owner[perm]], tile_start=start, tile_count=count)
+
+
+def finish_image(
+    sums: Float[Tensor, "H W 5"], background: Float[Tensor, " 3"]
+) -> tuple[Float[Tensor, "H W 3"], Float[Tensor, "H W 1"], Float[Tensor, "H W 1"]]:
+    """The last stage of the tile rasterizers: per-pixel sums of the blending weights times
+    (colour, depth, 1) become rgb over the background, alpha (Σ w) and expected depth
+    (Σ w z / Σ w; 0 where nothing is drawn)."""
+    color, depth_sum, alpha = sums[..., :3], sums[..., 3:4], sums[..., 4:5]
+    rgb = color + (1 - alpha) * background.to(dtype=sums.dtype, device=sums.device)
+    depth = depth_sum / alpha.clamp_min(torch.finfo(sums.dtype).tiny)
+    return rgb, alpha, depth

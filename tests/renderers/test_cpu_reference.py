@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from dyngs.errors import ConfigError
-from dyngs.renderers import cpu_reference
+from dyngs.renderers import cpu_reference, stages
 from dyngs.renderers.base import Guards
 from dyngs.renderers.cpu_reference import (
     CpuReferenceConfig,
@@ -318,7 +318,7 @@ def test_chunking_changes_neither_image_nor_gradients(
 
 def _tile_counts(gaussians: Gaussians, camera: Camera) -> list[int]:
     screen = project(gaussians, camera, Guards())
-    return cpu_reference._bin(screen, camera.width, camera.height, 8).tile_count.tolist()
+    return stages.bin_tiles(screen, camera.width, camera.height, 8).tile_count.tolist()
 
 
 @pytest.mark.parametrize("seed", range(20))
@@ -400,7 +400,7 @@ def test_tile_pair_counts_are_what_binning_makes(seed: int) -> None:
     gaussians, camera, _ = random_scene(seed, 300, width, height, torch.float64)
     screen = project(gaussians, camera, Guards())
     sizes = (4, 5, 8, 16)
-    binned = [int(cpu_reference._bin(screen, width, height, s).tile_count.sum()) for s in sizes]
+    binned = [int(stages.bin_tiles(screen, width, height, s).tile_count.sum()) for s in sizes]
     assert cpu_reference.tile_pair_counts(screen, width, height, sizes) == binned
     assert binned[0] > binned[-1] > 0
 
@@ -424,7 +424,7 @@ def test_small_gaussians_get_small_tiles_and_large_ones_large_tiles(
     assert cpu_reference.choose_tile_size(screen, 128, 128) == expected
     # The choice is the least expected work over the binnings it chooses from.
     work = {
-        size: int(cpu_reference._bin(screen, 128, 128, size).tile_count.sum())
+        size: int(stages.bin_tiles(screen, 128, 128, size).tile_count.sum())
         * (cpu_reference._PAIR_COST + size * size)
         for size in cpu_reference._TILE_SIZES
     }

@@ -26,7 +26,7 @@ def test_counts_match_the_renderers_binning(tiny_run: Path) -> None:
             screen = stages.project(gaussians, view.camera, renderer.guards)
             w, h = view.camera.width, view.camera.height
             tile = renderer.config.tile_size or cpu_reference.choose_tile_size(screen, w, h)
-            bins = cpu_reference._bin(screen, w, h, tile)
+            bins = stages.bin_tiles(screen, w, h, tile)
             binned.append(int(bins.tile_count.sum()))
             pixels.append(int(bins.tile_count.sum()) * tile * tile)
             visible.append(int(screen.visible.sum()))
