@@ -21,12 +21,14 @@ from dyngs.errors import RendererUnavailable
 from dyngs.registry import Registry, is_config_class
 from dyngs.renderers.base import ContributionRenderer, Renderer, RendererSpec, RenderOutput
 from dyngs.renderers.cpu_reference import CpuReferenceConfig
+from dyngs.renderers.cpu_tile import CpuTileConfig, cpu_tile_available
 from dyngs.renderers.cuda_tile import CudaTileConfig, cuda_tile_available
 from dyngs.types import NEAR_PLANE, Camera, Gaussians
 
 RENDERERS: Registry[type[RendererSpec]] = Registry("renderer", "dyngs.renderers", is_config_class)
 RENDERERS.register("cpu-reference", CpuReferenceConfig)
 RENDERERS.register("cuda-tile", CudaTileConfig)
+RENDERERS.register("cpu-tile", CpuTileConfig)
 
 
 def renderer_name(config: RendererSpec) -> str:
@@ -97,11 +99,13 @@ __all__ = [
     "RENDERERS",
     "ContributionRenderer",
     "CpuReferenceConfig",
+    "CpuTileConfig",
     "CudaTileConfig",
     "RenderOutput",
     "Renderer",
     "RendererSpec",
     "RendererUnavailable",
+    "cpu_tile_available",
     "default_renderer",
     "rasterize",
     "renderer_name",

@@ -1,14 +1,17 @@
 """Hard cases for every available renderer (issue 5, docs/NUMERICS.md).
 
-Each test draws one hard case on `cpu-reference` in float64 and float32 and, where a CUDA
-device and gsplat are present, on `cuda-tile`. Every draw checks that rgb, alpha and depth
-are finite, alpha lies in [0, 1] and depth ≥ 0, and that a backward pass gives finite
-gradients for every parameter (`_draw`). Where a brute-force answer exists the image must
-equal it (`_assert_matches_brute_force`):
+Each test draws one hard case on `cpu-reference` and `cpu-tile` in float64 and float32
+and, where a CUDA device and gsplat are present, on `cuda-tile`. Every draw checks that
+rgb, alpha and depth are finite, alpha lies in [0, 1] and depth ≥ 0, and that a backward
+pass gives finite gradients for every parameter (`_draw`). Where a brute-force answer
+exists the image must equal it (`_assert_matches_brute_force`):
 
 - cpu-reference: the float64 oracle (tests/renderers/oracle.py), to 1e-9 in float64 and to
   1e-5 in float32 away from the pixels the oracle marks fragile (a threshold decision
   within float32 rounding of its threshold), which must stay under 1 % of the image;
+- cpu-tile: the oracle likewise, and every draw also equals cpu-reference's on the same
+  inputs (`_assert_matches_reference`): images to 1e-9 (float64) or 1e-5 (float32), every
+  gradient to 1e-9 or 1e-4 of its largest entry;
 - cuda-tile: cpu-reference on the same GPU, to 1e-4 away from a one-pixel band around
   coverage edges, as in test_cuda_tile.py.
 
@@ -27,6 +30,7 @@ from torch import Tensor
 import tests.renderers.oracle as oracle_module
 from dyngs.renderers.base import Renderer, RenderOutput
 from dyngs.renderers.cpu_reference import CpuReferenceConfig
+from dyngs.renderers.cpu_tile import CpuTileConfig
 from dyngs.renderers.cuda_tile import CudaTileConfig, cuda_tile_available
 from dyngs.types import NEAR_PLANE, Camera, Gaussians
 from tests.renderers.oracle import render_oracle
@@ -48,6 +52,8 @@ class Setup:
     def build(self) -> Renderer:
         if self.renderer == "cuda-tile":
             return CudaTileConfig().build()
+        if self.renderer == "cpu-tile":
+            return CpuTileConfig().build()
         return CpuReferenceConfig().build()
 
     @property
@@ -60,6 +66,8 @@ class Setup:
 SETUPS = [
     pytest.param(Setup("cpu-reference", torch.float64, "cpu"), id="cpu-reference-float64"),
     pytest.param(Setup("cpu-reference", torch.float32, "cpu"), id="cpu-reference-float32"),
+    pytest.param(Setup("cpu-tile", torch.float64, "cpu"), id="cpu-tile-float64"),
+    pytest.param(Setup("cpu-tile", torch.float32, "cpu"), id="cpu-tile-float32"),
     pytest.param(
         Setup("cuda-tile", torch.float32, "cuda"),
         id="cuda-tile-float32",
@@ -159,7 +167,33 @@ def _draw(
         grads[name] = grad
     drawn = Gaussians(**{k: v.detach() for k, v in leaves.items()}, sh_degree=g.sh_degree)
     out = replace(out, rgb=rgb, alpha=alpha, depth=depth)  # the backward is done
-    return Drawn(out, drawn, cam, bg, grads)
+    result = Drawn(out, drawn, cam, bg, grads)
+    if setup.renderer == "cpu-tile":
+        reference = replace(setup, renderer="cpu-reference")
+        options = {"camera_dtype": camera_dtype, "rgb_in_unit_range": rgb_in_unit_range}
+        want = _draw(reference, gaussians, camera, background, **options)  # type: ignore[arg-type]
+        _assert_matches_reference(setup, result, want)
+    return result
+
+
+def _largest(values: Tensor) -> float:
+    return float(values.max()) if values.numel() else 0.0
+
+
+def _assert_matches_reference(setup: Setup, got: Drawn, want: Drawn) -> None:
+    """cpu-tile's draw equals cpu-reference's on the same inputs: images within the setup's
+    tolerance, every gradient within 1e-9 (float64) or 1e-4 (float32) of its largest entry."""
+    for name in ("rgb", "alpha", "depth"):
+        diff = _largest((getattr(got.out, name) - getattr(want.out, name)).abs())
+        assert diff <= setup.tolerance, f"{name} differs from cpu-reference by {diff:.3g}"
+    assert torch.equal(got.out.visible, want.out.visible)
+    relative = 1e-9 if setup.dtype == torch.float64 else 1e-4
+    for name, grad in got.grads.items():
+        scale = _largest(want.grads[name].abs())
+        diff = _largest((grad - want.grads[name]).abs())
+        assert diff <= relative * scale or diff == 0, (
+            f"∂/∂{name} differs by {diff:.3g} of {scale:.3g}"
+        )
 
 
 def _boundary_band(alpha: Tensor) -> Tensor:

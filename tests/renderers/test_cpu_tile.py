@@ -1,0 +1,213 @@
+"""`cpu-tile` held to `cpu-reference`, the specification: images, contributions and every
+gradient on random scenes, gradcheck of the compiled backward, and the properties that
+make it usable for training (deterministic, independent of threads and tile size). The
+hard cases run on it too (test_hard_cases.py)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import pytest
+import torch
+from torch import Tensor
+
+from dyngs.errors import ConfigError, RendererUnavailable
+from dyngs.renderers import cpu_tile
+from dyngs.renderers.base import Guards, RenderOutput
+from dyngs.renderers.cpu_reference import CpuReferenceConfig
+from dyngs.renderers.cpu_tile import CpuTileConfig
+from dyngs.renderers.stages import bin_tiles, project
+from dyngs.types import Camera, Gaussians
+from tests.renderers.scenes import random_scene
+from tests.renderers.test_cpu_reference import _tiny_scene
+
+PARAMS = ("means", "quats", "scales", "opacities", "colors")
+
+
+def _render(
+    config: CpuReferenceConfig | CpuTileConfig,
+    gaussians: Gaussians,
+    camera: Camera,
+    background: Tensor,
+) -> tuple[RenderOutput, dict[str, Tensor]]:
+    """A render with contribution measured, and the gradients of a loss that weighs every
+    output channel differently (so no gradient cancels by symmetry)."""
+    leaves = {
+        name: getattr(gaussians, name).detach().clone().requires_grad_(True) for name in PARAMS
+    }
+    out = config.build()(Gaussians(**leaves, sh_degree=gaussians.sh_degree), camera, background,
+                         contribution=True)  # fmt: skip
+    gen = torch.Generator().manual_seed(7)
+    weights = torch.randn(*out.rgb.shape[:2], 5, generator=gen, dtype=torch.float64)
+    stacked = torch.cat((out.rgb, out.alpha, out.depth), -1)
+    (stacked * weights.to(stacked.dtype)).sum().backward()
+    grads = {name: leaf.grad for name, leaf in leaves.items()}
+    grads["means2d"] = out.means2d.grad
+    return out, {name: grad for name, grad in grads.items() if grad is not None}
+
+
+def _assert_parity(got: RenderOutput, want: RenderOutput, dtype: torch.dtype) -> None:
+    tolerance = 1e-9 if dtype == torch.float64 else 1e-5
+    for name in ("rgb", "alpha", "depth"):
+        diff = float((getattr(got, name) - getattr(want, name)).detach().abs().max())
+        assert diff <= tolerance, f"{name} differs by {diff:.3g}"
+    assert torch.equal(got.visible, want.visible) and torch.equal(got.radii, want.radii)
+    assert got.contribution is not None and want.contribution is not None
+    scale = float(want.contribution.abs().max())
+    assert float((got.contribution - want.contribution).abs().max()) <= tolerance * max(scale, 1)
+
+
+def _assert_gradients_match(got: dict[str, Tensor], want: dict[str, Tensor], dtype: torch.dtype):  # type: ignore[no-untyped-def]
+    relative = 1e-9 if dtype == torch.float64 else 1e-4
+    assert got.keys() == want.keys()
+    for name, grad in want.items():
+        scale = float(grad.abs().max())
+        assert scale > 0, f"no gradient reached {name}"
+        diff = float((got[name] - grad).abs().max())
+        assert diff <= relative * scale, f"∂/∂{name}: {diff:.3g} of {scale:.3g}"
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["float64", "float32"])
+@pytest.mark.parametrize(
+    ("seed", "n", "width", "height", "sh_degree"),
+    [
+        (0, 300, 97, 61, None),
+        (1, 800, 64, 48, 0),
+        (2, 2000, 33, 129, 1),
+        (3, 1200, 130, 70, 2),
+        (4, 3000, 101, 101, 3),
+    ],
+)
+def test_images_contributions_and_gradients_match_the_reference(
+    dtype: torch.dtype, seed: int, n: int, width: int, height: int, sh_degree: int | None
+) -> None:
+    gaussians, camera, background = random_scene(seed, n, width, height, dtype, sh_degree)
+    want, want_grads = _render(CpuReferenceConfig(), gaussians, camera, background)
+    got, got_grads = _render(CpuTileConfig(), gaussians, camera, background)
+    assert bool(want.visible.sum() > n // 4), "the scene should draw many Gaussians"
+    _assert_parity(got, want, dtype)
+    _assert_gradients_match(got_grads, want_grads, dtype)
+
+
+@pytest.mark.parametrize("antialiased", [False, True])
+def test_antialiased_matches_the_reference(antialiased: bool) -> None:
+    gaussians, camera, background = random_scene(11, 500, 80, 60, torch.float64, 2)
+    want, want_grads = _render(CpuReferenceConfig(antialiased=antialiased), gaussians, camera,
+                               background)  # fmt: skip
+    got, got_grads = _render(CpuTileConfig(antialiased=antialiased), gaussians, camera, background)
+    _assert_parity(got, want, torch.float64)
+    _assert_gradients_match(got_grads, want_grads, torch.float64)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sh_degree", [None, 3])
+def test_gradcheck_gaussian_parameters(sh_degree: int | None) -> None:
+    base, camera, background = _tiny_scene(sh_degree)
+    renderer = CpuTileConfig(tile_size=8).build()
+    gen = torch.Generator().manual_seed(1)
+    weights = torch.rand(camera.height, camera.width, 5, generator=gen, dtype=torch.float64)
+
+    def image(means, quats, scales, opacities, colors):  # type: ignore[no-untyped-def]
+        out = renderer(Gaussians(means, quats, scales, opacities, colors, sh_degree), camera,
+                       background)  # fmt: skip
+        return (torch.cat((out.rgb, out.alpha, out.depth), -1) * weights).sum(-1)
+
+    inputs = tuple(getattr(base, name).clone().requires_grad_(True) for name in PARAMS)
+    assert torch.autograd.gradcheck(image, inputs, eps=1e-6, atol=1e-6, rtol=1e-4)
+
+
+def test_gradcheck_of_the_compiled_compositing() -> None:
+    """The kernels alone, as a function of every input they differentiate: 2D means,
+    conics, ln opacity and the blended features."""
+    gaussians, camera, _ = _tiny_scene(None, seed=2)
+    screen = project(gaussians, camera, Guards())
+    size = (camera.width, camera.height, 8)
+    bins = bin_tiles(screen, *size)
+    plan = cpu_tile._Plan(bins, size, Guards(), None, False)
+    features = torch.cat((screen.colors, screen.depths[:, None]), 1)
+
+    def sums(means2d: Tensor, conics: Tensor, log_opacity: Tensor, feats: Tensor) -> Tensor:
+        return cpu_tile._Composite.apply(means2d, conics, log_opacity, feats, plan)[0]
+
+    inputs = tuple(
+        t.detach().clone().requires_grad_(True)
+        for t in (screen.means2d, screen.conics, screen.opacities.log(), features)
+    )
+    assert torch.autograd.gradcheck(sums, inputs, eps=1e-6, atol=1e-6, rtol=1e-4)
+
+
+def test_the_same_render_on_every_run_and_thread_count() -> None:
+    gaussians, camera, background = random_scene(5, 2000, 90, 70, torch.float32, 3)
+    runs = [
+        _render(CpuTileConfig(threads=threads), gaussians, camera, background)
+        for threads in (1, 2, 2)
+    ]
+    (first, first_grads), *others = runs
+    for out, grads in others:
+        assert torch.equal(out.rgb, first.rgb) and torch.equal(out.depth, first.depth)
+        assert out.contribution is not None and first.contribution is not None
+        assert torch.equal(out.contribution, first.contribution)
+        for name, grad in grads.items():
+            assert torch.equal(grad, first_grads[name]), name
+
+
+@pytest.mark.parametrize("tile_size", [1, 7, 16, 32])
+def test_the_image_does_not_depend_on_the_tile_size(tile_size: int) -> None:
+    # Every pixel takes the same pairs in the same order whatever the tiling, so its sums are
+    # the same bit for bit; gradients are summed per tile first, so they agree to rounding.
+    gaussians, camera, background = random_scene(6, 600, 45, 37, torch.float64, 1)
+    base, base_grads = _render(CpuTileConfig(), gaussians, camera, background)
+    out, grads = _render(CpuTileConfig(tile_size=tile_size), gaussians, camera, background)
+    assert torch.equal(out.rgb, base.rgb) and torch.equal(out.alpha, base.alpha)
+    _assert_gradients_match(grads, base_grads, torch.float64)
+
+
+def test_renders_whose_gaussians_all_stop_early_match() -> None:
+    # Two hundred opaque Gaussians stacked in front of the camera: every pixel stops early,
+    # and backward must start each pixel from the last pair it took.
+    n = 200
+    gen = torch.Generator().manual_seed(3)
+    means = torch.cat((torch.randn(n, 2, generator=gen, dtype=torch.float64) * 0.05,
+                       torch.linspace(2, 3, n, dtype=torch.float64)[:, None]), 1)  # fmt: skip
+    gaussians = Gaussians(
+        means,
+        torch.randn(n, 4, generator=gen, dtype=torch.float64),
+        torch.tensor([[1.5, 1.2, 0.9]], dtype=torch.float64).repeat(n, 1),
+        torch.full((n,), 0.95, dtype=torch.float64),
+        torch.rand(n, 3, generator=gen, dtype=torch.float64),
+    )
+    camera = Camera(30.0, 30.0, 16.0, 12.0, torch.eye(4, dtype=torch.float64), 32, 24)
+    background = torch.tensor([0.2, 0.4, 0.6], dtype=torch.float64)
+    want, want_grads = _render(CpuReferenceConfig(), gaussians, camera, background)
+    got, got_grads = _render(CpuTileConfig(), gaussians, camera, background)
+    # Every pixel ran out of transmittance within the first few Gaussians: the rest draw
+    # nothing.
+    assert want.contribution is not None and float(want.alpha.min()) > 0.99
+    assert bool((want.contribution[n // 2 :] == 0).all())
+    _assert_parity(got, want, torch.float64)
+    _assert_gradients_match(got_grads, want_grads, torch.float64)
+
+
+def test_without_numba_it_says_what_is_missing(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(cpu_tile, "cpu_tile_available", lambda: False)
+    with pytest.raises(RendererUnavailable, match="needs numba"):
+        CpuTileConfig().build()
+
+
+def test_bad_options_are_refused() -> None:
+    with pytest.raises(ConfigError, match="tile-size"):
+        CpuTileConfig(tile_size=0)
+    with pytest.raises(ConfigError, match="threads"):
+        CpuTileConfig(threads=0)
+
+
+def test_an_empty_view_still_runs_backward() -> None:
+    gaussians, camera, background = random_scene(8, 50, 20, 10, torch.float32)
+    behind = replace(gaussians, means=gaussians.means.clone().requires_grad_(True))
+    w2c = camera.world_to_camera.clone()
+    w2c[2, 3] -= 100.0  # everything behind the camera
+    out = CpuTileConfig().build()(behind, replace(camera, world_to_camera=w2c), background)
+    assert not bool(out.visible.any())
+    assert torch.equal(out.rgb, background.expand_as(out.rgb))
+    out.rgb.sum().backward()
+    assert behind.means.grad is None or bool((behind.means.grad == 0).all())
