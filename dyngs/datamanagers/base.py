@@ -145,9 +145,19 @@ class Split:
     """Per-pixel weights of the photometric loss (255 = fully counted): the alpha of
     RGBA sources, or a format's foreground segmentation."""
     paths: list[Path] | None = None
+    mask_kind: str = "alpha"
+    """What the masks mark: "alpha", where anything is (the alpha of RGBA sources: outside
+    it is empty space), or "segmentation", a foreground (the background lies outside it)."""
+    mask_known: list[bool] | None = None
+    """Per frame, whether it has a mask of its own; a frame without one (all 255) counts
+    fully in the loss and says nothing about where things are. None: every frame has."""
 
     def __len__(self) -> int:
         return len(self.cameras)
+
+    def has_mask(self, index: int) -> bool:
+        """Whether frame `index` has a mask of its own."""
+        return self.masks is not None and (self.mask_known is None or self.mask_known[index])
 
 
 @dataclass
@@ -162,6 +172,9 @@ class SceneData:
     point_colors: Float[Tensor, "P 3"] | None
     background: Float[Tensor, " 3"]
     """The colour RGBA images were composited over, in [0, 1]; renders use the same."""
+    points_source: str = "random"
+    """Where `points` came from: a file's name (a point cloud in the folder), or how they
+    were made ("random in the box", "carved from 108 silhouettes", …)."""
 
     @property
     def num_timestamps(self) -> int:
@@ -184,5 +197,5 @@ class SceneData:
         return (
             f"{self.name}: {len(cameras)} cameras, {self.num_timestamps} timestamps, "
             f"{counts} views, {resolution}, t ∈ [{float(times.min()):.3g}, "
-            f"{float(times.max()):.3g}], {len(self.points):,} initial points"
+            f"{float(times.max()):.3g}], {len(self.points):,} points ({self.points_source})"
         )

@@ -22,11 +22,14 @@ ORTHONORMAL_TOLERANCE = 1e-3
 """Largest |RᵀR − I| entry accepted for a camera rotation (float32 JSON rounding is ~1e-7)."""
 
 
-def check_rigid(matrix: object, name: str = "transform_matrix") -> Float[np.ndarray, "4 4"] | str:
+def check_rigid(
+    matrix: object, name: str = "transform_matrix", allow_reflection: bool = False
+) -> Float[np.ndarray, "4 4"] | str:
     """The matrix as float64 4×4 if it is a rigid transform, else a short problem statement.
 
     Rejected: not 4×4 numbers, non-finite entries, a last row other than (0, 0, 0, 1), a
-    singular or non-orthonormal (scaled, sheared) rotation block, a reflection.
+    singular or non-orthonormal (scaled, sheared) rotation block, a reflection (unless
+    `allow_reflection`: a capture whose world frame is mirrored, see `mirror_world`).
     """
     try:
         m = np.asarray(matrix, dtype=np.float64)
@@ -45,9 +48,20 @@ def check_rigid(matrix: object, name: str = "transform_matrix") -> Float[np.ndar
     error = float(np.abs(rotation.T @ rotation - np.eye(3)).max())
     if error > ORTHONORMAL_TOLERANCE:
         return f"{name} rotation is not orthonormal (|RᵀR − I| = {error:.3g})"
-    if det < 0:
+    if det < 0 and not allow_reflection:
         return f"{name} rotation is a reflection (det −1)"
     return m
+
+
+MIRROR_X = np.diag([-1.0, 1.0, 1.0, 1.0])
+"""Mirrors the world in x: x_world → −x_world."""
+
+
+def mirror_world(w2c: Float[np.ndarray, "4 4"]) -> Float[np.ndarray, "4 4"]:
+    """The world-to-camera matrix of the same camera in a world mirrored in x. A capture
+    whose every camera is a reflection (det −1) has a left-handed world frame; mirrored,
+    every camera becomes a rotation and the pictures are unchanged."""
+    return w2c @ MIRROR_X
 
 
 def blender_to_world_to_camera(c2w_gl: Float[np.ndarray, "4 4"]) -> Float[np.ndarray, "4 4"]:
@@ -284,3 +298,28 @@ def depth_ranges_around_box(cameras: list[Camera], box: SceneBox) -> list[tuple[
         near = max(depth - radius, camera.near)
         ranges.append((near, max(depth + radius, 2.0 * near)))
     return ranges
+
+
+def share_ahead(world_to_cameras: list[Float[np.ndarray, "4 4"]]) -> float:
+    """The share of distinct cameras that have in front of them the point closest to all
+    their optical axes (in the least-squares sense): 1 for a rig that looks at one scene.
+    A rig whose matrices are read the wrong way round (camera-to-world given as
+    world-to-camera) looks away from itself and scores near 0. Cameras whose axes are
+    nearly parallel have no such point; they score 1."""
+    seen: dict[tuple[float, ...], Float[np.ndarray, "4 4"]] = {}
+    for w2c in world_to_cameras:
+        seen.setdefault(tuple(np.round(w2c[:3].ravel(), 4)), w2c)
+    if len(seen) < 2:
+        return 1.0
+    rotations = np.stack([m[:3, :3] for m in seen.values()])
+    inverses = np.linalg.inv(rotations)
+    centres = -np.einsum("cij,cj->ci", inverses, np.stack([m[:3, 3] for m in seen.values()]))
+    axes = inverses[:, :, 2]  # the camera's +z in world space
+    axes = axes / np.linalg.norm(axes, axis=1, keepdims=True)
+    projectors = np.eye(3) - axes[:, :, None] * axes[:, None, :]
+    lhs = projectors.sum(0)
+    if np.linalg.cond(lhs) > 1e6:
+        return 1.0
+    point = np.linalg.solve(lhs, np.einsum("cij,cj->i", projectors, centres))
+    depth = np.einsum("ci,ci->c", point - centres, axes)
+    return float((depth > 0).mean())

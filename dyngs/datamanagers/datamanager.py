@@ -14,11 +14,13 @@ from pathlib import Path
 
 import torch
 from jaxtyping import Float
+from rich.markup import escape
 from torch import Tensor
 
 from dyngs.datamanagers.base import HOST_CACHE_BYTES, LazyImages, SceneData, Split, image_size
-from dyngs.datamanagers.fixed_cameras import FixedCameras
+from dyngs.datamanagers.fixed_cameras import PIXEL_CHANGE, FixedCameras
 from dyngs.datamanagers.formats import FORMATS
+from dyngs.datamanagers.init_points import INITIAL_POINTS, choose_initial_points
 from dyngs.datamanagers.procedural import demo_path
 from dyngs.datamanagers.progress import report
 from dyngs.errors import ConfigError, DatasetError
@@ -39,8 +41,14 @@ class DataConfig:
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
     """RGB the RGBA images are composited over (and renders use)."""
     num_random_points: int = 20_000
-    """Initial points drawn when the folder has no point cloud: uniform in the scene box
-    (D-NeRF) or in the volume every train camera sees (Panoptic, DyNeRF, Nerfies)."""
+    """Initial points made when the folder has no usable point cloud: carved from
+    silhouettes or triangulated from the images where they allow, else uniform in the
+    scene box (D-NeRF) or in the volume every train camera sees (Panoptic, DyNeRF,
+    Nerfies)."""
+    initial_points: str = "auto"
+    """Where the Gaussians start: `auto` (the capture's point cloud when it is real, else
+    points made from the images, else random; the run says which and why), `file` (the
+    capture's cloud, whatever it looks like), `data` (made from the images), `random`."""
     device_cache_bytes: int = 2 << 30
     """Keep float images on the training device when they fit in this many bytes."""
     host_cache_bytes: int = HOST_CACHE_BYTES
@@ -49,6 +57,11 @@ class DataConfig:
     format: str = AUTO
     """Dataset format: `auto` (from the folder's contents), `dnerf`, `panoptic`,
     `dynerf` or `nerfies`."""
+    holdout: str = "auto"
+    """Views held out for evaluation when a capture has no test split of its own (a
+    Panoptic release with only train_meta.json): `camera:ID` (a novel viewpoint), `camera`
+    (the one nearest the others' centroid), `every:N` (every N-th timestep, all cameras:
+    novel times), or `auto` (`camera` from four cameras up, else `every:10`)."""
 
     def __post_init__(self) -> None:
         if self.downscale < 1:
@@ -61,9 +74,28 @@ class DataConfig:
             raise ConfigError(f"--device-cache-bytes must be ≥ 0, got {self.device_cache_bytes}")
         if self.host_cache_bytes < 0:
             raise ConfigError(f"--host-cache-bytes must be ≥ 0, got {self.host_cache_bytes}")
+        if not _valid_holdout(self.holdout):
+            raise ConfigError(
+                f"--holdout must be auto, camera, camera:ID or every:N (N ≥ 2), "
+                f"got {self.holdout!r}"
+            )
+        if self.initial_points not in INITIAL_POINTS:
+            raise ConfigError(
+                f"--initial-points must be one of {', '.join(INITIAL_POINTS)}, "
+                f"got {self.initial_points!r}"
+            )
         names = [AUTO, *FORMATS.names()]
         if self.format not in names:
             raise ConfigError(f"--format must be one of {', '.join(names)}, got {self.format!r}")
+
+
+def _valid_holdout(rule: str) -> bool:
+    kind, colon, value = rule.partition(":")
+    if not colon:
+        return rule in ("auto", "camera")
+    if kind == "camera":
+        return value.lstrip("-").isdigit()
+    return kind == "every" and value.isdigit() and int(value) >= 2
 
 
 def load_scene(data: str | Path, config: DataConfig, seed: int = 0) -> SceneData:
@@ -75,8 +107,7 @@ def load_scene(data: str | Path, config: DataConfig, seed: int = 0) -> SceneData
     """
     if str(data) == DEMO:
         scene = FORMATS.get("dnerf").parse(demo_path(), config, seed)
-        report(f"[bold]dnerf[/bold] {scene.summary()}")
-        return scene
+        return _with_initial_points("dnerf", scene, config, seed)
     path = Path(data).expanduser()
     if not path.exists():
         raise DatasetError(f"{path}: does not exist")
@@ -92,8 +123,17 @@ def load_scene(data: str | Path, config: DataConfig, seed: int = 0) -> SceneData
         name, fmt = found[0].name, found[0].item
     else:
         name, fmt = config.format, FORMATS.get(config.format)
-    scene = fmt.parse(path, config, seed)
+    return _with_initial_points(name, fmt.parse(path, config, seed), config, seed)
+
+
+def _with_initial_points(name: str, scene: SceneData, config: DataConfig, seed: int) -> SceneData:
+    """The parsed scene with its initial points chosen (`choose_initial_points`); two
+    lines on stderr say what was found and where the Gaussians start."""
     report(f"[bold]{name}[/bold] {scene.summary()}")
+    scene, line = choose_initial_points(
+        scene, config.initial_points, config.num_random_points, PIXEL_CHANGE, seed
+    )
+    report(escape(f"[points] {line}"))
     return scene
 
 

@@ -256,8 +256,10 @@ def parse_dnerf(
     points: torch.Tensor | None = None
     colors: torch.Tensor | None = None
     cloud = find_point_cloud(path)
+    source = "random in the box"
     if cloud is not None:
         points, colors = read_point_cloud(cloud)
+        source = cloud.name
     box = scene_box_from_cameras(splits["train"].cameras, points)
     if points is None:
         points = random_points_in_box(box, num_random_points, seed)
@@ -270,6 +272,7 @@ def parse_dnerf(
         points=points,
         point_colors=colors,
         background=torch.tensor(background, dtype=torch.float32),
+        points_source=source,
     )
 
 

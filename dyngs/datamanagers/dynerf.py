@@ -367,8 +367,10 @@ def parse_dynerf(
     points: torch.Tensor | None = None
     colors: torch.Tensor | None = None
     cloud = find_point_cloud(path)
+    source = "random in the cameras' common view"
     if cloud is not None:
         points, colors = read_point_cloud(cloud)
+        source = cloud.name
     else:
         train_cameras = [cameras[i] for i in train_index]
         depths = [(poses[i].near, poses[i].far) for i in train_index]
@@ -383,4 +385,5 @@ def parse_dynerf(
         points=points,
         point_colors=colors,
         background=torch.tensor(background, dtype=torch.float32),
+        points_source=source,
     )

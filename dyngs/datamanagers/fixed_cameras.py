@@ -18,6 +18,11 @@ from torch import Tensor
 from dyngs.datamanagers.base import Split
 from dyngs.types import Camera
 
+PIXEL_CHANGE = 0.1
+"""How far (largest channel difference, in [0, 1]) a pixel must be from its camera's
+temporal median to show something that is not usually there: about 25/255, above sensor
+and compression noise, below the contrast of an object against what is behind it."""
+
 MEDIAN_FRAMES = 64
 """Frames per fixed camera that the temporal median is taken over (evenly spread)."""
 

@@ -69,13 +69,25 @@ def _capture(parse: CaptureParser) -> Callable[[Path, DataConfig, int], SceneDat
     return run
 
 
+def _panoptic(path: Path, config: DataConfig, seed: int) -> SceneData:
+    return parse_panoptic(
+        path,
+        config.downscale,
+        config.background,
+        config.num_random_points,
+        seed,
+        config.host_cache_bytes,
+        config.holdout,
+    )
+
+
 FORMATS: Registry[DatasetFormat] = Registry("dataset format", "dyngs.formats", _check)
 FORMATS.register(
     "dnerf", DatasetFormat("transforms_train.json", _dnerf, "D-NeRF / Blender synthetic scenes")
 )
 FORMATS.register(
     "panoptic",
-    DatasetFormat("train_meta.json", _capture(parse_panoptic), "Dynamic 3D Gaussians (Panoptic)"),
+    DatasetFormat("train_meta.json", _panoptic, "Dynamic 3D Gaussians (Panoptic)"),
 )
 FORMATS.register(
     "dynerf",

@@ -328,8 +328,10 @@ def parse_nerfies(
     train = _split([views[i] for i in train_ids], times, residual, background, train_bytes)
     test = _split([views[i] for i in val_ids], times, residual, background, cache_bytes // 4)
 
+    source = "random in the cameras' common view"
     if (path / "points.npy").is_file():
         points = _read_points(path / "points.npy", scene)
+        source = "points.npy"
     else:
         depths = [(scene.near, scene.far)] * len(train)
         points = points_in_common_view(train.cameras, depths, num_random_points, seed)
@@ -342,4 +344,5 @@ def parse_nerfies(
         points=points,
         point_colors=None,
         background=torch.tensor(background, dtype=torch.float32),
+        points_source=source,
     )

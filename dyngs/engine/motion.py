@@ -32,7 +32,7 @@ from jaxtyping import Bool, Float
 from torch import Tensor
 
 from dyngs.datamanagers.base import Split
-from dyngs.datamanagers.fixed_cameras import FixedCameras, dilate
+from dyngs.datamanagers.fixed_cameras import PIXEL_CHANGE, FixedCameras, dilate
 from dyngs.errors import ConfigError
 from dyngs.geometry import normalize_quaternion
 from dyngs.model import DynamicGaussians
@@ -63,7 +63,7 @@ class MotionConfig:
     Σ |g (t - ½)| over the views since the last refinement): an error that changes with
     time, which no static Gaussian can fix. Under-fitting in a still region pulls the same
     way at every time and scores about 1/√views."""
-    pixel_change: float = 0.1
+    pixel_change: float = PIXEL_CHANGE
     """Fixed cameras: a pixel whose early frames differ from its temporal median by more
     than this (largest channel, colours in [0, 1]) sees something that moves away; 0.1 ≈
     25/255 sits well above sensor and compression noise (a few /255 in DyNeRF's still

@@ -105,6 +105,35 @@ def _time(step: int, count: int) -> float:
 # ---------------------------------------------------------------- Panoptic
 
 
+@dataclass(frozen=True)
+class Release:
+    """How a public Panoptic-style release departs from the layout's description."""
+
+    seg_cameras: tuple[int, ...] | None = None
+    """Cameras that have seg/ files (None: all)."""
+    test_meta: bool = True
+    """Whether test_meta.json is written (else its cameras are left out altogether)."""
+    png: bool = False
+    """Images are PNG files while `fn` names .jpg."""
+    camera_to_world: bool = False
+    """`w2c` holds the camera-to-world matrix."""
+    mirrored: bool = False
+    """The world frame is mirrored in x (every camera matrix a reflection, det −1)."""
+
+
+MIRROR = np.diag([-1.0, 1.0, 1.0, 1.0])
+
+
+def _pose_entry(camera: Camera, release: Release) -> list[list[float]]:
+    """A camera's `w2c` as the release writes it."""
+    w2c = camera.world_to_camera.double().numpy()
+    if release.mirrored:  # the same camera in a world mirrored in x
+        w2c = w2c @ MIRROR
+    if release.camera_to_world:
+        w2c = np.linalg.inv(w2c)
+    return w2c.tolist()
+
+
 def write_panoptic(
     folder: Path,
     num_train: int = 4,
@@ -113,9 +142,12 @@ def write_panoptic(
     size: tuple[int, int] = (32, 24),
     seg: bool = True,
     point_cloud: bool = True,
+    release: Release = Release(),
 ) -> Truth:
     """train_meta.json / test_meta.json, ims/<cam>/<t>.jpg, seg/<cam>/<t>.png (0/1) and
-    init_pt_cld.npz. Cameras have fx ≠ fy and an off-centre principal point."""
+    init_pt_cld.npz. Cameras have fx ≠ fy and an off-centre principal point. `release`
+    writes the departures of real releases (the world then stays the true one: a mirrored
+    release's points are mirrored too)."""
     width, height = size
     cameras = [
         ring_camera(
@@ -128,6 +160,8 @@ def write_panoptic(
         for c in range(num_train + num_test)
     ]
     splits = {"train": list(range(num_train)), "test": list(range(num_train, num_train + num_test))}
+    if not release.test_meta:
+        del splits["test"]
     truth: dict[str, list[tuple[Camera, float]]] = {}
     for split, ids in splits.items():
         meta: dict[str, Any] = {"w": width, "h": height, "k": [], "w2c": [], "fn": [], "cam_id": []}
@@ -141,16 +175,17 @@ def write_panoptic(
                 rgba = render_rgba(SCENE, camera, time)
                 rgb = render_rgb(camera, time)
                 (folder / "ims" / str(c)).mkdir(parents=True, exist_ok=True)
+                image = folder / "ims" / (fn.replace(".jpg", ".png") if release.png else fn)
                 assert cv2.imwrite(
-                    str(folder / "ims" / fn), rgb[..., ::-1].copy(), [cv2.IMWRITE_JPEG_QUALITY, 98]
+                    str(image), rgb[..., ::-1].copy(), [cv2.IMWRITE_JPEG_QUALITY, 98]
                 )
-                if seg:
+                if seg and (release.seg_cameras is None or c in release.seg_cameras):
                     (folder / "seg" / str(c)).mkdir(parents=True, exist_ok=True)
                     labels = (rgba[..., 3] > 0.5).astype(np.uint8)  # 0/1, as the released data
                     assert cv2.imwrite(str(folder / "seg" / f"{c}/{t:06d}.png"), labels)
                 k = [[camera.fx, 0.0, camera.cx], [0.0, camera.fy, camera.cy], [0.0, 0.0, 1.0]]
                 row["k"].append(k)
-                row["w2c"].append(camera.world_to_camera.double().tolist())
+                row["w2c"].append(_pose_entry(camera, release))
                 row["fn"].append(fn)
                 row["cam_id"].append(c)
                 views.append((camera, time))
@@ -160,6 +195,8 @@ def write_panoptic(
         truth[split] = views
     if point_cloud:
         xyz, rgb = sample_point_cloud(SCENE, cameras[:num_train], count=600)
+        if release.mirrored:
+            xyz = xyz * np.array([-1.0, 1.0, 1.0])
         data = np.concatenate([xyz, rgb, np.ones((len(xyz), 1))], axis=1)
         np.savez(folder / "init_pt_cld.npz", data=data)
     return Truth(truth)

@@ -308,7 +308,9 @@ def test_loading_reports_what_it_found(
     panoptic: tuple[Path, Truth], capsys: pytest.CaptureFixture[str]
 ) -> None:
     load_scene(panoptic[0], DataConfig())
-    line = capsys.readouterr().err.strip()
-    assert line.startswith("panoptic ") and "\n" not in line
+    found, points = capsys.readouterr().err.strip().splitlines()
+    assert found.startswith("panoptic ")
     for part in ("5 cameras", "3 timestamps", "12 train / 3 val / 3 test", "32×24", "t ∈ [0, 1]"):
-        assert part in line
+        assert part in found
+    # The second line says where the Gaussians start: here, the capture's own cloud.
+    assert points.startswith("[points]") and "from init_pt_cld.npz" in points

@@ -75,7 +75,9 @@ def _small_image(relative: str) -> Breakage:
 
 
 PANOPTIC: dict[str, tuple[Breakage, str]] = {
-    "missing test meta": (_delete("test_meta.json"), "test_meta.json"),
+    # A missing test_meta.json or seg/ file is how public releases ship (test views are
+    # then held out, a frame without a mask counts fully): test_panoptic_releases.py.
+    "missing train meta": (_delete("train_meta.json"), "train_meta.json"),
     "malformed json": (_write("train_meta.json", b'{"w": 32,'), "train_meta.json"),
     "missing key": (_edit_json("train_meta.json", _pop("w2c")), "train_meta.json"),
     "missing size": (_edit_json("test_meta.json", _pop("h")), "test_meta.json"),
@@ -83,7 +85,6 @@ PANOPTIC: dict[str, tuple[Breakage, str]] = {
     "scaled w2c": (_edit_json("train_meta.json", _panoptic_w2c), "train_meta.json"),
     "bad intrinsics": (_edit_json("train_meta.json", _panoptic_k), "train_meta.json"),
     "missing image": (_delete("ims/1/000001.jpg"), "000001.jpg"),
-    "missing mask": (_delete("seg/2/000000.png"), "seg/2/000000.png"),
     "unreadable image": (_write("ims/0/000000.jpg", b"not a jpeg"), "ims/0/000000.jpg"),
     "wrong image size": (_small_image("ims/3/000000.jpg"), "ims/3/000000.jpg"),
     "npz without data": (_panoptic_points, "init_pt_cld.npz"),
