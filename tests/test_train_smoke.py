@@ -45,13 +45,14 @@ def _run(tmp_path: Path, *args: str) -> tuple[Path, dict]:
     return run, json.loads((run / "metrics.json").read_text())
 
 
+@pytest.mark.parametrize("renderer", ["cpu-reference", "cpu-tile"])
 @pytest.mark.parametrize("method", sorted(method_presets()[0]))
-def test_every_preset_runs_two_steps(method: str, tmp_path: Path) -> None:
+def test_every_preset_runs_two_steps(method: str, renderer: str, tmp_path: Path) -> None:
     run, metrics = _run(
-        tmp_path, method, "renderer:cpu-reference", "--data", str(demo_path(TINY_SCENE))
+        tmp_path, method, f"renderer:{renderer}", "--data", str(demo_path(TINY_SCENE))
     )
     assert METRIC_KEYS <= set(metrics)
-    assert metrics["iterations"] == 2 and metrics["renderer"] == "cpu-reference"
+    assert metrics["iterations"] == 2 and metrics["renderer"] == renderer
     assert 0 < metrics["psnr"] < 100 and 0 < metrics["ssim"] <= 1 and metrics["num_gaussians"] > 0
     assert len(metrics["frames"]) == TINY_SCENE.num_test
     assert len(list((run / "test").glob("*.png"))) == TINY_SCENE.num_test

@@ -1,4 +1,5 @@
-"""Renderers: `cpu-reference` (pure PyTorch, the specification) and `cuda-tile` (gsplat).
+"""Renderers: `cpu-reference` (pure PyTorch, the specification), `cpu-tile` (compiled
+kernels for CPUs) and `cuda-tile` (gsplat).
 
 `RENDERERS` holds their configs by name (`renderer:cpu-reference`, `renderer:cuda-tile`);
 an installed package adds its own through the `dyngs.renderers` entry-point group (see
@@ -37,8 +38,11 @@ def renderer_name(config: RendererSpec) -> str:
 
 
 def default_renderer() -> RendererSpec:
-    """cuda-tile where a CUDA device and gsplat are present, else cpu-reference."""
-    return CudaTileConfig() if cuda_tile_available() else CpuReferenceConfig()
+    """cuda-tile where a CUDA device and gsplat are present, else cpu-tile (the compiled
+    CPU rasterizer, held to cpu-reference by the tests), else cpu-reference."""
+    if cuda_tile_available():
+        return CudaTileConfig()
+    return CpuTileConfig() if cpu_tile_available() else CpuReferenceConfig()
 
 
 @cache

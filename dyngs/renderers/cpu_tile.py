@@ -132,10 +132,12 @@ class _Plan:
     guards: Guards
     threads: int | None
     contribution: bool
+    work: np.ndarray | None = None
+    """After the forward: per busy tile, the pixel visits and the pairs drawn."""
 
     def tile_order(self) -> np.ndarray:
-        """The tiles with any Gaussian, busiest first: threads take them one at a time, so
-        the longest tiles start first and the short ones fill in at the end."""
+        """The tiles with any Gaussian, busiest first (by Gaussian count): dealt to the
+        threads in turn, they share the work about evenly."""
         counts = self.bins.tile_count
         busy = (counts > 0).nonzero().squeeze(1)
         return busy[torch.argsort(counts[busy], descending=True, stable=True)].numpy()
@@ -163,18 +165,16 @@ def _launch(kernel: Any, threads: int | None, *args: Any) -> None:
     import numba
 
     most = numba.config.NUMBA_NUM_THREADS  # type: ignore[attr-defined]  # set at import
-    count = min(threads or torch.get_num_threads(), most)
+    count = max(1, min(threads or torch.get_num_threads(), most))
     key = f"{kernel.__name__}:{args[0][3].dtype}"
     with _LOCK:
-        numba.set_num_threads(max(count, 1))
+        numba.set_num_threads(count)
         if key in _COMPILED:
-            with numba.parallel_chunksize(1):
-                kernel(*args)
+            kernel(*args, count)
             return
         misses = sum(kernel.stats.cache_misses.values())
         started = time.perf_counter()
-        with numba.parallel_chunksize(1):
-            kernel(*args)
+        kernel(*args, count)
         _COMPILED.add(key)
         if sum(kernel.stats.cache_misses.values()) > misses:
             sys.stderr.write(
@@ -222,8 +222,9 @@ class _Composite(torch.autograd.Function):
         transmittance = np.ones((height, width))
         last = np.full((height, width), -1, dtype=np.int64)
         per_pair = np.zeros(len(scene[4]) if plan.contribution else 0)
+        plan.work = np.zeros((len(order), 2), dtype=np.int64)
         _launch(tile_kernels.composite_forward, plan.threads, scene, order, plan.layout(),
-                plan.limits(), sums, transmittance, last, per_pair)  # fmt: skip
+                plan.limits(), sums, transmittance, last, per_pair, plan.work)  # fmt: skip
         ctx.plan = plan
         ctx.state = (scene, order, transmittance, last)
         contribution = torch.from_numpy(per_pair)

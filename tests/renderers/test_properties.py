@@ -22,6 +22,7 @@ from torch import Tensor
 
 from dyngs.renderers.base import Renderer
 from dyngs.renderers.cpu_reference import CpuReferenceConfig
+from dyngs.renderers.cpu_tile import CpuTileConfig
 from dyngs.renderers.cuda_tile import CudaTileConfig, cuda_tile_available
 from dyngs.types import Camera, Gaussians
 from tests.renderers.scenes import look_at
@@ -29,7 +30,7 @@ from tests.renderers.scenes import look_at
 MAX_EXAMPLES = 60
 """Scenes drawn per renderer (read by benchmarks/count_hard_cases.py)."""
 
-RENDERERS = ["cpu-reference"] + (["cuda-tile"] if cuda_tile_available() else [])
+RENDERERS = ["cpu-reference", "cpu-tile"] + (["cuda-tile"] if cuda_tile_available() else [])
 
 # The SH basis functions of degree ≤ 3 are at most 1 in magnitude on the unit sphere, so
 # coefficients whose absolute sum is ≤ 0.25 move a colour by at most 0.25.
@@ -140,7 +141,7 @@ def test_random_valid_scenes_render_in_range_with_finite_gradients(
         draw = CudaTileConfig().build()
     else:
         device, dtype = "cpu", torch.float64 if spec.float64 else torch.float32
-        draw = CpuReferenceConfig().build()
+        draw = CpuTileConfig().build() if renderer == "cpu-tile" else CpuReferenceConfig().build()
     g = gaussians.to(device=device, dtype=dtype)
     names = ("means", "quats", "scales", "opacities", "colors")
     leaves = {k: getattr(g, k).detach().clone().requires_grad_(True) for k in names}
