@@ -34,7 +34,29 @@ _EXTRA = "_extra_state"
 """The state_dict key of `DynamicGaussians.get_extra_state` (PyTorch's convention)."""
 
 # Names of the per-Gaussian parameters, in a fixed order (checkpoints, optimizer groups).
-GAUSSIAN_PARAMS = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
+GAUSSIAN_PARAMS = (
+    "means",
+    "quats",
+    "log_scales",
+    "opacity_logits",
+    "sh_dc",
+    "sh_rest",
+    "time_centers",
+    "time_log_scales",
+)
+
+DRAWN_PARAMS = GAUSSIAN_PARAMS[:6]
+"""The parameters of a static 3DGS Gaussian (what a PLY export holds): a snapshot at one
+time has its temporal opacity folded into its opacity."""
+
+ETERNAL = 30.0
+"""`time_log_scales` of a Gaussian that exists at every time (the default). Any value at or
+above `TEMPORAL_LIMIT` means the same: its opacity is not scaled and its time parameters
+get no gradient."""
+
+TEMPORAL_LIMIT = math.log(100.0)
+"""A Gaussian whose time scale σ is under this (e^4.6 = 100, in units of the sequence)
+has temporal opacity; at σ = 100 it would fade by 5e-5 over the whole sequence anyway."""
 
 
 @dataclass(frozen=True)
@@ -70,13 +92,16 @@ def subsample_points(
     colors: Float[Tensor, "P 3"] | None,
     limit: int | None,
     generator: torch.Generator,
-) -> tuple[Float[Tensor, "N 3"], Float[Tensor, "N 3"] | None]:
-    """At most `limit` of the points (and their colours), drawn without replacement."""
+    lifetimes: Float[Tensor, "P 2"] | None = None,
+) -> tuple[Float[Tensor, "N 3"], Float[Tensor, "N 3"] | None, Float[Tensor, "N 2"] | None]:
+    """At most `limit` of the points (and their colours and lifetimes), drawn without
+    replacement."""
     if limit is not None and len(points) > limit:
         keep = torch.randperm(len(points), generator=generator)[:limit]
         points = points[keep]
         colors = None if colors is None else colors[keep]
-    return points, colors
+        lifetimes = None if lifetimes is None else lifetimes[keep]
+    return points, colors, lifetimes
 
 
 class CanonicalGaussians(nn.Module):
@@ -88,6 +113,11 @@ class CanonicalGaussians(nn.Module):
     opacity_logits: nn.Parameter
     sh_dc: nn.Parameter
     sh_rest: nn.Parameter
+    time_centers: nn.Parameter
+    """τ: the time a temporal Gaussian is most opaque at (see `temporal_factor`)."""
+    time_log_scales: nn.Parameter
+    """log σ of its temporal opacity; `ETERNAL` (or anything ≥ `TEMPORAL_LIMIT`) for a
+    Gaussian that exists at every time."""
 
     def __init__(self, num: int, sh_degree: int) -> None:
         super().__init__()
@@ -99,6 +129,8 @@ class CanonicalGaussians(nn.Module):
         self.opacity_logits = nn.Parameter(torch.zeros(num))
         self.sh_dc = nn.Parameter(torch.zeros(num, 1, 3))
         self.sh_rest = nn.Parameter(torch.zeros(num, rest, 3))
+        self.time_centers = nn.Parameter(torch.full((num,), 0.5))
+        self.time_log_scales = nn.Parameter(torch.full((num,), ETERNAL))
 
     def __len__(self) -> int:
         return self.means.shape[0]
@@ -112,7 +144,7 @@ class CanonicalGaussians(nn.Module):
         generator: torch.Generator,
     ) -> CanonicalGaussians:
         """Gaussians at the points (subsampled to `config.max_init_points`)."""
-        points, colors = subsample_points(points, colors, config.max_init_points, generator)
+        points, colors, _ = subsample_points(points, colors, config.max_init_points, generator)
         model = cls(len(points), config.sh_degree)
         model.initialize(points, colors, config)
         return model
@@ -123,10 +155,12 @@ class CanonicalGaussians(nn.Module):
         points: Float[Tensor, "N 3"],
         colors: Float[Tensor, "N 3"] | None,
         config: GaussianConfig,
+        lifetimes: Float[Tensor, "N 2"] | None = None,
     ) -> None:
         """Place one Gaussian at each point, as 3D Gaussian Splatting does (Kerbl et al.
         2023): unrotated, isotropic with the mean distance to its nearest points as scale,
-        `config.init_opacity`, and the point's colour (grey without one)."""
+        `config.init_opacity`, and the point's colour (grey without one). `lifetimes`
+        gives each point's (τ, σ) of temporal opacity; σ = inf (or no lifetimes): eternal."""
         if len(points) != len(self):
             raise ValueError(f"{len(points)} points for {len(self)} Gaussians")
         points = points.float()
@@ -144,6 +178,30 @@ class CanonicalGaussians(nn.Module):
         rgb = torch.full_like(points, 0.5) if colors is None else colors.float().clamp(0, 1)
         self.sh_dc.copy_(rgb_to_sh0(rgb)[:, None, :])
         self.sh_rest.zero_()
+        self.time_centers.fill_(0.5)
+        self.time_log_scales.fill_(ETERNAL)
+        if lifetimes is not None:
+            if lifetimes.shape != (len(points), 2):
+                raise ValueError(
+                    f"lifetimes must be [{len(points)}, 2], got {tuple(lifetimes.shape)}"
+                )
+            temporal = torch.isfinite(lifetimes[:, 1])
+            self.time_centers.copy_(torch.where(temporal, lifetimes[:, 0].float(), 0.5))
+            sigma = lifetimes[:, 1].float().clamp_min(1e-4).log()
+            self.time_log_scales.copy_(
+                torch.where(temporal, sigma.clamp_max(TEMPORAL_LIMIT), ETERNAL)
+            )
+
+    def temporal(self) -> Bool[Tensor, " N"]:
+        """Gaussians with temporal opacity."""
+        return self.time_log_scales < TEMPORAL_LIMIT
+
+    def temporal_factor(self, t: float) -> Float[Tensor, " N"]:
+        """What each Gaussian's opacity is multiplied by at time t: exp(−½((t − τ)/σ)²), the
+        temporal radial basis of Spacetime Gaussians (Li et al. 2024), for temporal
+        Gaussians; exactly 1, with no gradient to τ or σ, for eternal ones."""
+        z = (t - self.time_centers) * torch.exp(-self.time_log_scales.clamp_max(TEMPORAL_LIMIT))
+        return torch.where(self.temporal(), torch.exp(-0.5 * z * z), 1.0)
 
     def params(self) -> dict[str, nn.Parameter]:
         return {name: getattr(self, name) for name in GAUSSIAN_PARAMS}
@@ -159,6 +217,12 @@ class CanonicalGaussians(nn.Module):
             setattr(self, name, nn.Parameter(values[name].detach().contiguous()))
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):  # type: ignore[no-untyped-def]
+        # Models saved before temporal opacity existed: every Gaussian eternal.
+        if prefix + "means" in state_dict and prefix + "time_centers" not in state_dict:
+            count = state_dict[prefix + "means"].shape[0]
+            like = state_dict[prefix + "opacity_logits"]
+            state_dict[prefix + "time_centers"] = torch.full((count,), 0.5).to(like)
+            state_dict[prefix + "time_log_scales"] = torch.full((count,), ETERNAL).to(like)
         # A checkpoint may hold any number of Gaussians: resize before copying.
         shapes = {n: state_dict[prefix + n] for n in GAUSSIAN_PARAMS if prefix + n in state_dict}
         if len(shapes) == len(GAUSSIAN_PARAMS):
@@ -173,13 +237,16 @@ def activate(
     opacity_logits: Tensor,
     sh: Float[Tensor, "N K 3"],
     sh_degree: int,
+    presence: Float[Tensor, " N"] | None = None,
 ) -> Gaussians:
-    """Raw parameters → drawable Gaussians (the one place activations are applied)."""
+    """Raw parameters → drawable Gaussians (the one place activations are applied);
+    `presence` (temporal opacity, in [0, 1]) scales the opacities."""
+    opacities = torch.sigmoid(opacity_logits)
     return Gaussians(
         means=means,
         quats=normalize_quaternion(quats),
         scales=log_scales.exp(),
-        opacities=torch.sigmoid(opacity_logits),
+        opacities=opacities if presence is None else opacities * presence,
         colors=sh[:, : num_sh_bases(sh_degree)],
         sh_degree=sh_degree,
     )
@@ -333,9 +400,12 @@ class DynamicGaussians(nn.Module):
         raw = self.raw_at(t, self.deforming if deform is None else deform)
         sh = torch.cat((raw["sh_dc"], raw["sh_rest"]), dim=1)
         degree = self.active_sh_degree if sh_degree is None else sh_degree
+        c = self.canonical
+        presence = c.temporal_factor(t) if bool(c.temporal().any()) else None
         return activate(
-            raw["means"], raw["quats"], raw["log_scales"], raw["opacity_logits"], sh, degree
-        )
+            raw["means"], raw["quats"], raw["log_scales"], raw["opacity_logits"], sh, degree,
+            presence,
+        )  # fmt: skip
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):  # type: ignore[no-untyped-def]
         if prefix + "dynamic" in state_dict:  # the checkpoint's Gaussian count

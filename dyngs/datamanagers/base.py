@@ -172,6 +172,9 @@ class SceneData:
     point_colors: Float[Tensor, "P 3"] | None
     background: Float[Tensor, " 3"]
     """The colour RGBA images were composited over, in [0, 1]; renders use the same."""
+    point_lifetimes: Float[Tensor, "P 2"] | None = None
+    """Per point, (τ, σ) of the time it was seen around, for points of what moves (made
+    from the images); σ = inf, or None for all, for points that exist at every time."""
     points_source: str = "random"
     """Where `points` came from: a file's name (a point cloud in the folder), or how they
     were made ("random in the box", "carved from 108 silhouettes", …)."""

@@ -107,6 +107,8 @@ class Points:
     points: Float[Tensor, "P 3"]
     colors: Float[Tensor, "P 3"] | None
     source: str
+    lifetimes: Float[Tensor, "P 2"] | None = None
+    """(τ, σ) per point; σ = inf for points that exist at every time."""
 
 
 def _image(split: Split, index: int) -> Float[Tensor, "H W 3"]:
@@ -275,6 +277,31 @@ def _rays_into_box(
     return centre + directions * depth[:, None]
 
 
+def _hull_test(
+    candidates: Float[Tensor, "C 3"], split: Split, views: list[int], shapes: Silhouettes
+) -> tuple[Bool[Tensor, " C"], Bool[Tensor, " C"]]:
+    """Which candidates lie in the hull of `views` (each has a silhouette): the viewpoints
+    that see them, at least two, see them inside a silhouette, all of them but one in
+    five. A viewpoint's views at several times count once, inside where any of them is:
+    the union over time of what moves. Also which candidates two viewpoints see at all."""
+    groups: dict[tuple[float, ...], list[int]] = {}
+    for i in views:
+        groups.setdefault(_viewpoint(split.cameras[i]), []).append(i)
+    seen = torch.zeros(len(candidates), dtype=torch.long)
+    inside = torch.zeros(len(candidates), dtype=torch.long)
+    for members in groups.values():
+        hit = torch.zeros(len(candidates), dtype=torch.bool)
+        visible = torch.zeros(len(candidates), dtype=torch.bool)
+        for i in members:
+            h, v = _inside(candidates, split.cameras[i], shapes.masks[i])  # type: ignore[arg-type]
+            hit |= h
+            visible |= v
+        seen += visible.long()
+        inside += hit.long()
+    looked = seen >= 2
+    return looked & (inside >= seen - seen // 5), looked
+
+
 def _carve_window(
     split: Split,
     window: list[int],
@@ -283,21 +310,17 @@ def _carve_window(
     want: int,
     generator: torch.Generator,
 ) -> Float[Tensor, "P 3"]:
-    """Points of one window's hull: candidates along rays through each view's silhouette
-    in turn, kept where the viewpoints of the window that see them (at least two) see them
-    inside a silhouette, all of them but one in five. A viewpoint's views at several times
-    count once, inside where any of them is: the union over time of what moves."""
+    """Points of one window's hull (`_hull_test`): candidates along rays through each of
+    its silhouettes in turn."""
     views = [i for i in window if shapes.masks[i] is not None]
-    groups: dict[tuple[float, ...], list[int]] = {}
-    for i in views:
-        groups.setdefault(_viewpoint(split.cameras[i]), []).append(i)
+    if len({_viewpoint(split.cameras[i]) for i in views}) < 2:
+        return torch.zeros(0, 3, dtype=torch.float64)
     kept: list[Tensor] = []
     found = 0
     for attempt in range(4 * len(views)):
-        if found >= want or not views or len(groups) < 2:
+        if found >= want:
             break
-        reference = views[attempt % len(views)]
-        mask = shapes.masks[reference]
+        mask = shapes.masks[views[attempt % len(views)]]
         assert mask is not None
         rows, cols = mask.nonzero(as_tuple=True)
         if len(rows) == 0:
@@ -305,21 +328,11 @@ def _carve_window(
         picks = torch.randint(len(rows), (max(4 * want, 2048),), generator=generator)
         jitter = torch.rand(len(picks), 2, generator=generator, dtype=torch.float64)
         pixels = torch.stack((cols[picks], rows[picks]), -1).double() + jitter
-        candidates = _rays_into_box(split.cameras[reference], pixels, box, generator)
-        seen = torch.zeros(len(candidates), dtype=torch.long)
-        inside = torch.zeros(len(candidates), dtype=torch.long)
-        for members in groups.values():
-            hit = torch.zeros(len(candidates), dtype=torch.bool)
-            visible = torch.zeros(len(candidates), dtype=torch.bool)
-            for i in members:
-                h, v = _inside(candidates, split.cameras[i], shapes.masks[i])  # type: ignore[arg-type]
-                hit |= h
-                visible |= v
-            seen += visible.long()
-            inside += hit.long()
-        good = (seen >= 2) & (inside >= seen - seen // 5)
-        kept.append(candidates[good])
-        found += int(good.sum())
+        camera = split.cameras[views[attempt % len(views)]]
+        candidates = _rays_into_box(camera, pixels, box, generator)
+        held, _ = _hull_test(candidates, split, views, shapes)
+        kept.append(candidates[held])
+        found += int(held.sum())
     points = torch.cat(kept) if kept else torch.zeros(0, 3, dtype=torch.float64)
     return points[:want]
 
@@ -369,6 +382,43 @@ def colours(
     filled = torch.where(ok[..., None], stack, torch.nan)
     median = filled.nanmedian(dim=0).values
     return torch.where(torch.isnan(median), torch.full_like(median, 0.5), median)
+
+
+ETERNAL_SHARE = 0.8
+"""A carved point inside the hull of at least this share of the windows that see it is
+there at every time; one inside fewer was seen around the times of those windows."""
+
+
+def lifetimes(
+    points: Float[Tensor, "P 3"], split: Split, shapes: Silhouettes
+) -> tuple[Float[Tensor, "Q 3"], Float[Tensor, "Q 2"]]:
+    """The points with their lifetimes (τ, σ). A point held by `ETERNAL_SHARE` of the
+    windows that see it (what stays put), or by none, is there at every time: σ = inf.
+    Otherwise it gets one lifetime per run of consecutive windows whose hulls hold it (a
+    point that something passes twice is two Gaussians): τ the middle of the run's times,
+    σ half their spread plus half the spacing of windows."""
+    views = [i for i in range(len(split)) if shapes.masks[i] is not None]
+    spans = windows(split, views)
+    if len(spans) < 2:
+        return points, torch.full((len(points), 2), math.inf)
+    tests = [_hull_test(points.double(), split, span, shapes) for span in spans]
+    held = torch.stack([h for h, _ in tests]).numpy()  # [W, P]
+    looked = torch.stack([seen for _, seen in tests]).numpy()
+    centres = np.array([float(split.times[span].double().mean()) for span in spans])
+    count = held.sum(0)
+    temporal = (count > 0) & (count < ETERNAL_SHARE * looked.sum(0))
+    spacing = (centres[-1] - centres[0]) / (len(centres) - 1)
+    rows, times = [np.flatnonzero(~temporal)], [np.full((int((~temporal).sum()), 2), np.inf)]
+    start = np.full(len(points), -1)
+    for w in range(len(spans) + 1):
+        inside = held[w] & temporal if w < len(spans) else np.zeros(len(points), bool)
+        ending = (start >= 0) & ~inside
+        first, last = centres[start[ending]], centres[w - 1]
+        rows.append(np.flatnonzero(ending))
+        times.append(np.stack([(first + last) / 2, (last - first) / 2 + spacing / 2], 1))
+        start = np.where(ending, -1, np.where(inside & (start < 0), w, start))
+    order = torch.from_numpy(np.concatenate(rows))
+    return points[order], torch.from_numpy(np.concatenate(times)).float()
 
 
 # ---------------------------------------------------------------------------------------
@@ -536,48 +586,67 @@ def seeded_along_rays(
     return torch.cat(points).float(), torch.cat(colors)
 
 
+_Part = tuple[Tensor, Tensor, Tensor, str]
+"""Points, their colours, their lifetimes (τ, σ) and one phrase saying how they were made."""
+
+
+def _carved(
+    split: Split, shapes: Silhouettes, box: SceneBox, count: int, seed: int, how: str
+) -> _Part:
+    found, times = lifetimes(carve(split, shapes, box, count, seed), split, shapes)
+    return found, colours(found, split, shapes), times, how
+
+
+def _eternal(points: Tensor, colors: Tensor, how: str) -> _Part:
+    return points, colors, torch.full((len(points), 2), math.inf), how
+
+
+def _background(split: Split, box: SceneBox, count: int, seed: int) -> list[_Part]:
+    """Where no silhouette shows all there is: triangulated points, topped up with points
+    seeded along background rays."""
+    found = triangulate(split, box)
+    if len(found) > count:
+        found = found[
+            torch.randperm(len(found), generator=torch.Generator().manual_seed(seed))[:count]
+        ]
+    parts = [_eternal(found, colours(found, split, None), "triangulated from feature matches")]
+    if len(found) < count:
+        seeded = seeded_along_rays(split, box, count - len(found), seed, FixedCameras.of(split))
+        parts.append(_eternal(*seeded, "on the rays of background pixels"))
+    return parts
+
+
 def made_from_data(
     scene: SceneData, box: SceneBox, count: int, pixel_change: float, seed: int
 ) -> Points | None:
     """Points made from the training images (see the module docstring), or None where
-    nothing can be made. Half of them go to what moves where something is seen to."""
+    nothing can be made. Half of them go to what moves where something is seen to. Carved
+    points carry the times their windows saw them (`lifetimes`)."""
     train = scene.train
     shapes = silhouettes(train, scene.background)
     moving = shapes if shapes is not None and shapes.kind == "segmentation" else None
     if moving is None:
         moving = moving_silhouettes(train, pixel_change)
     share = count // 2 if moving is not None else count
-    parts: list[tuple[Tensor, Tensor, str]] = []
+    parts: list[_Part] = []
     if moving is not None:
-        found = carve(train, moving, box, count - share, seed + 1)
         what = "foreground" if moving.kind == "segmentation" else "what moves in"
-        parts.append(
-            (found, colours(found, train, moving), f"carved from {what} {moving.count()} views")
-        )
+        how = f"carved from {what} {moving.count()} views"
+        parts.append(_carved(train, moving, box, count - share, seed + 1, how))
     if shapes is not None and shapes.everything:
-        found = carve(train, shapes, box, share, seed)
-        parts.append(
-            (
-                found,
-                colours(found, train, shapes),
-                f"carved from {shapes.count()} {shapes.kind} silhouettes",
-            )
-        )
+        how = f"carved from {shapes.count()} {shapes.kind} silhouettes"
+        parts.append(_carved(train, shapes, box, share, seed, how))
     else:
-        found = triangulate(train, box)
-        if len(found) > share:
-            found = found[
-                torch.randperm(len(found), generator=torch.Generator().manual_seed(seed))[:share]
-            ]
-        parts.append((found, colours(found, train, None), "triangulated from feature matches"))
-        if len(found) < share:
-            seeded = seeded_along_rays(train, box, share - len(found), seed, FixedCameras.of(train))
-            parts.append((*seeded, "on the rays of background pixels"))
+        parts += _background(train, box, share, seed)
     parts = [part for part in parts if len(part[0]) > 0]
     if sum(len(part[0]) for part in parts) < MIN_MADE:
         return None
-    said = ", ".join(f"{len(p):,} {how}" for p, _, how in parts)
-    return Points(torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts]), said)
+    said = ", ".join(f"{len(p):,} {how}" for p, _, _, how in parts)
+    times = torch.cat([part[2] for part in parts])
+    temporal = int(torch.isfinite(times[:, 1]).sum())
+    if temporal:
+        said += f"; {temporal:,} of them seen only around some times"
+    return Points(torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts]), said, times)
 
 
 def choose_initial_points(
@@ -610,6 +679,7 @@ def choose_initial_points(
         scene,
         points=made.points,
         point_colors=made.colors,
+        point_lifetimes=made.lifetimes,
         scene_box=box,
         points_source=f"made from the images ({made.source})",
     )

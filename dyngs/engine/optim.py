@@ -34,6 +34,11 @@ class OptimConfig:
     opacity_logits: float = 5e-2
     sh_dc: float = 2.5e-3
     sh_rest: float = 2.5e-3 / 20
+    time_centers: float = 1e-4
+    """τ of temporal opacity, in units of the sequence (Spacetime Gaussians, Li et al.
+    2024, use 1e-4)."""
+    time_log_scales: float = 3e-2
+    """log σ of temporal opacity (Li et al. 2024: 3e-2)."""
     grid: tuple[float, float] = (1.6e-2, 1.6e-4)
     """Feature planes of a plane-based field: 10× 4DGaussians' rates, because our schedules
     are about 10× shorter than theirs (docs/TRAINING.md)."""
@@ -79,6 +84,8 @@ def build_optimizer(
     group("opacity_logits", [c.opacity_logits], config.opacity_logits)
     group("sh_dc", [c.sh_dc], config.sh_dc)
     group("sh_rest", [c.sh_rest], config.sh_rest)
+    group("time_centers", [c.time_centers], config.time_centers)
+    group("time_log_scales", [c.time_log_scales], config.time_log_scales)
     deformation = [*model.field.parameters(), *model.head.parameters()]
     grid, network = DEFORMATION_GROUPS
     group(grid, [p for p in deformation if _is_grid(p)], *config.grid)

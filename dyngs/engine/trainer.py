@@ -75,13 +75,14 @@ def initial_model(
 ) -> DynamicGaussians:
     """The model at step 0: a Gaussian at each of the scene's initial points (subsampled
     to the budget), the field and head drawn from `generator`."""
-    points, colors = subsample_points(
-        scene.points, scene.point_colors, config.gaussians.max_init_points, generator
-    )
+    points, colors, lifetimes = subsample_points(
+        scene.points, scene.point_colors, config.gaussians.max_init_points, generator,
+        scene.point_lifetimes,
+    )  # fmt: skip
     model = DynamicGaussians.build(
         config.gaussians, config.field, config.head, scene.scene_box, len(points), generator
     )
-    model.canonical.initialize(points, colors, config.gaussians)
+    model.canonical.initialize(points, colors, config.gaussians, lifetimes)
     model.deforming = schedules.deforming(config, 0)
     return model
 

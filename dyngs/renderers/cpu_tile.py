@@ -75,6 +75,8 @@ class CpuTileRenderer:
             )
         self.config = config or CpuTileConfig()
         self.guards = guards or Guards()
+        self.last_work: np.ndarray | None = None
+        """Per busy tile of the last render: pixel visits and pairs drawn (benchmarks)."""
 
     def __call__(
         self,
@@ -99,6 +101,7 @@ class CpuTileRenderer:
         plan = _Plan(bins, size, self.guards, self.config.threads, contribution)
         inputs = (screen.means2d, screen.conics, log_opacity, features)
         sums, per_pair = _Composite.apply(*inputs, plan)
+        self.last_work = plan.work
         rgb, alpha, depth = finish_image(sums, background)
         weights = None
         if contribution:

@@ -27,6 +27,7 @@ from torch import Tensor
 
 from dyngs.errors import ConfigError, DatasetError
 from dyngs.geometry import normalize_quaternion
+from dyngs.model import DRAWN_PARAMS
 from dyngs.ply import read_ply, write_ply
 from dyngs.runs import LoadedRun, RunOverrides, load_run
 from dyngs.sh import num_sh_bases
@@ -40,7 +41,7 @@ def _rest_names(rest: int) -> list[str]:
 
 
 def write_gaussians_ply(path: Path | str, raw: dict[str, Tensor]) -> None:
-    """Write raw Gaussians (keys of `dyngs.model.GAUSSIAN_PARAMS`: means [N,3], quats
+    """Write raw Gaussians (keys of `dyngs.model.DRAWN_PARAMS`: means [N,3], quats
     [N,4], log_scales [N,3], opacity_logits [N], sh_dc [N,1,3], sh_rest [N,K−1,3]) in
     the 3DGS vertex layout. Values are stored as given (float32)."""
     means = raw["means"].detach().float().cpu().numpy()
@@ -121,7 +122,14 @@ def export_raw(run: LoadedRun, t: float, sh_degree: int | None = None) -> dict[s
     degree = full if sh_degree is None else sh_degree
     if not 0 <= degree <= full:
         raise ConfigError(f"--sh-degree must be in 0..{full} for this run, got {degree}")
-    raw = {k: v.detach().clone() for k, v in run.model.raw_at(t).items()}
+    every = run.model.raw_at(t)
+    raw = {k: every[k].detach().clone() for k in DRAWN_PARAMS}
+    canonical = run.model.canonical
+    if bool(canonical.temporal().any()):  # a snapshot: fold temporal opacity in
+        presence = canonical.temporal_factor(t)
+        opacity = torch.sigmoid(raw["opacity_logits"].double()) * presence.double()
+        folded = (opacity.log() - torch.log1p(-opacity)).to(raw["opacity_logits"].dtype)
+        raw["opacity_logits"] = torch.where(presence < 1, folded, raw["opacity_logits"])
     raw["quats"] = unit_quaternions(raw["quats"])
     rest = raw["sh_rest"][:, : num_sh_bases(degree) - 1]
     rest[:, max(num_sh_bases(run.model.active_sh_degree) - 1, 0) :] = 0.0

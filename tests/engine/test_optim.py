@@ -22,6 +22,8 @@ def test_groups_and_exponential_decay(tmp_path: Path) -> None:
         "opacity_logits",
         "sh_dc",
         "sh_rest",
+        "time_centers",
+        "time_log_scales",
         "grid",
         "network",
     }

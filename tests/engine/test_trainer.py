@@ -1,6 +1,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 from pathlib import Path
 
 import pytest
@@ -27,6 +28,10 @@ from tests.engine.helpers import (
 def test_gradients_reach_every_parameter_group(tmp_path: Path) -> None:
     # SH degree raised every step, so the higher coefficients are in play from step 1.
     trainer = tiny_trainer(tmp_path, warmup_iters=0, gaussians=GaussianConfig(sh_degree_interval=1))
+    # Every other Gaussian with temporal opacity (the rest eternal), so that its τ and σ
+    # are in play.
+    with torch.no_grad():
+        trainer.model.canonical.time_log_scales[::2] = math.log(0.3)
     named = dict(trainer.model.named_parameters())
     reached: set[str] = set()
     for name, param in named.items():

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from dyngs.model import GAUSSIAN_PARAMS, activate
+from dyngs.model import DRAWN_PARAMS, GAUSSIAN_PARAMS, activate
 from dyngs.ply import read_ply
 from dyngs.runs import load_run
 from dyngs.tools.export import export_raw, main, read_gaussians_ply, write_gaussians_ply
@@ -27,8 +27,8 @@ def test_round_trip_is_exact(rest: int, tmp_path: Path) -> None:
     raw = _random_raw(17, rest)
     write_gaussians_ply(tmp_path / "g.ply", raw)
     back = read_gaussians_ply(tmp_path / "g.ply")
-    assert set(back) == set(GAUSSIAN_PARAMS)
-    for name in GAUSSIAN_PARAMS:
+    assert set(back) == set(DRAWN_PARAMS)
+    for name in DRAWN_PARAMS:
         assert back[name].dtype == torch.float32 and torch.equal(back[name], raw[name]), name
 
 
@@ -80,7 +80,7 @@ def test_export_at_time_matches_the_model(tiny_run: Path, tmp_path: Path) -> Non
     back = read_gaussians_ply(out)
     run = load_run(tiny_run)
     expected = export_raw(run, 0.25)
-    for name in GAUSSIAN_PARAMS:
+    for name in DRAWN_PARAMS:
         assert torch.equal(back[name], expected[name].float()), name
     drawn = run.model.at(0.25)
     assert torch.equal(back["means"], drawn.means)
