@@ -1,15 +1,28 @@
-"""Benchmark the cpu-reference renderer: forward+backward and forward-only timings and peak
-memory on synthetic scenes of known size and density.
+"""Time cpu-tile against cpu-reference and CPU-runnable peers on identical scenes.
 
-    python benchmarks/bench_renderer.py                      # the issue's targets
-    python benchmarks/bench_renderer.py --sigma-px 0.75 3    # density sweep
+    python benchmarks/bench_renderer.py                                   # dyngs only
+    python benchmarks/bench_renderer.py --demo-run outputs/RUN \\
+        --peer splax=/path/to/venv/bin/python --peer gswarp=/path/to/venv/bin/python
 
-Each configuration runs in a fresh subprocess so its peak memory is its own. The scene:
-N Gaussians uniformly filling the view frustum between depths 2 and 6, random
-orientations, per-axis scales log-normal (σ = 0.5) around a median projected standard
-deviation of SIGMA_PX pixels, opacities uniform in [0.05, 0.95], RGB colours. The table
-reports the mean depth complexity (Gaussian–pixel pairs with α ≥ 1/255 per pixel) so the
-figures can be related to real scenes.
+Cases (the issue's): 10k Gaussians at 128² and 50k at 256², forward + backward; 50k and
+200k at 800², forward; and, with `--demo-run`, a trained model's test frames (forward +
+backward; SH evaluated to RGB per frame, so that every renderer does the same work).
+Synthetic scenes: N Gaussians filling the view frustum between depths 2 and 6, random
+orientations, log-normal scales (σ = 0.5) around a median projected standard deviation
+of `--sigma-px` pixels, opacities uniform in [0.05, 0.95], RGB colours, black background.
+
+Every (case, renderer) runs in a fresh process (its peak memory is its own) `--repeats`
+times after one warm-up; `--rounds` rounds cycle through all of them in turn, so that a
+busy spell of the machine hits every renderer alike, and the medians over all rounds are
+reported. Every renderer gets `--threads` threads. Each image is compared with
+cpu-reference's (peers: the largest difference, as their rules differ in detail).
+
+The physical limit: cpu-tile counts the Gaussian–pixel pairs it draws; each costs a
+forward pass of `FORWARD_FLOPS` arithmetic operations and one exponential (backward:
+`BACKWARD_FLOPS`, one exponential, one division). The cores' rates for those are measured
+here (`measure_rates`: fused multiply-adds over in-cache float32 vectors, and NumPy's
+vectorised float32 exp, on every thread), and pairs × cost ÷ rate is the time no
+implementation of this algorithm could beat on this machine.
 """
 
 from __future__ import annotations
@@ -17,25 +30,40 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import platform
+import os
 import resource
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
 
-from dyngs.renderers.cpu_reference import CpuReferenceConfig
-from dyngs.renderers.stages import project
-from dyngs.types import Camera, Gaussians
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
 
-TARGETS = [  # (N, size, forward+backward target in s)
-    (10_000, 128, 0.15),
-    (50_000, 256, 0.6),
-    (50_000, 800, None),  # forward only is reported for this one
+from dyngs.tools.common import machine_info  # noqa: E402
+from dyngs.types import Camera, Gaussians  # noqa: E402
+
+SYNTHETIC = [  # (name, Gaussians, size, backward)
+    ("10k-128-fb", 10_000, 128, True),
+    ("50k-256-fb", 50_000, 256, True),
+    ("50k-800-f", 50_000, 800, False),
+    ("200k-800-f", 200_000, 800, False),
 ]
+DYNGS = ("cpu-tile", "cpu-reference")
+
+FORWARD_FLOPS = 28
+"""Arithmetic per drawn pair in cpu-tile's forward, counted in its kernel: the offset (2),
+the exponent (9), the α clamp and floor (2), 1 − α, T(1 − α) and its test (3), the weight
+(1), four multiply-adds and the α sum (9), the contribution (1); plus one exp."""
+BACKWARD_FLOPS = 52
+"""The same for backward: α recomputed (13), T before (1 division), the weight (1), the
+upstream dot product (8), four feature gradients (8), ∂α and R (5), ∂ of the exponent with
+respect to mean, conic and ln o (16); plus one exp."""
 
 
 def make_scene(n: int, size: int, sigma_px: float, seed: int = 0) -> tuple[Gaussians, Camera]:
@@ -52,136 +80,239 @@ def make_scene(n: int, size: int, sigma_px: float, seed: int = 0) -> tuple[Gauss
     return Gaussians(means, quats, scales, opacities, colors), camera
 
 
-def depth_complexity(gaussians: Gaussians, camera: Camera, samples: int = 4096) -> float:
-    """Mean number of Gaussians per pixel with α ≥ 1/255, estimated on random pixels."""
-    from dyngs.renderers.base import Guards
-
-    screen = project(gaussians, camera, Guards())
-    vis = screen.visible.nonzero().squeeze(1)
-    gen = torch.Generator().manual_seed(1)
-    pix = torch.rand(samples, 2, generator=gen, dtype=torch.float64)
-    pix = pix * torch.tensor([camera.width, camera.height], dtype=torch.float64)
-    pix = pix.floor() + 0.5
-    total = 0
-    for chunk in vis.split(1024):
-        d = pix[None] - screen.means2d[chunk][:, None]
-        a, b, c = (q[:, None] for q in screen.conics[chunk].unbind(-1))
-        power = 0.5 * (a * d[..., 0] ** 2 + c * d[..., 1] ** 2) + b * d[..., 0] * d[..., 1]
-        alpha = screen.opacities[chunk][:, None] * torch.exp(-power)
-        total += int((alpha >= 1 / 255).sum())
-    return total / samples
+def save_scene(path: Path, gaussians: Gaussians, camera: Camera) -> None:
+    """The adapters' scene file (benchmarks/peers/scene.py)."""
+    k = np.array([[camera.fx, 0, camera.cx], [0, camera.fy, camera.cy], [0, 0, 1]])
+    arrays = {name: getattr(gaussians, name).detach().float().numpy()
+              for name in ("means", "quats", "scales", "opacities", "colors")}  # fmt: skip
+    np.savez(path, **arrays, world_to_camera=camera.world_to_camera.float().numpy(),
+             K=k.astype(np.float32), width=camera.width, height=camera.height)  # fmt: skip
 
 
-def run_single(
-    n: int, size: int, sigma_px: float, tile_size: int | None, repeats: int, backward: bool
-) -> dict:
-    gaussians, camera = make_scene(n, size, sigma_px)
-    renderer = CpuReferenceConfig(tile_size=tile_size).build()
-    background = torch.ones(3)
-    params = [
-        gaussians.means,
-        gaussians.quats,
-        gaussians.scales,
-        gaussians.opacities,
-        gaussians.colors,
-    ]
-    baseline_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    times_fwd, times_total = [], []
-    for _ in range(repeats + 1):  # the first run warms up allocators and caches
-        for p in params:
-            p.grad = None
-            p.requires_grad_(backward)
-        start = time.perf_counter()
-        out = renderer(gaussians, camera, background)
-        mid = time.perf_counter()
+def demo_frames(run: Path, folder: Path, limit: int) -> list[Path]:
+    """Up to `limit` test frames of a trained run, as scene files (SH evaluated to RGB)."""
+    from dyngs.renderers.stages import prepare
+    from dyngs.runs import load_run
+    from dyngs.sh import eval_sh
+
+    loaded = load_run(run)
+    scene = loaded.scene
+    paths = []
+    views = list(zip(scene.test.cameras, scene.test.times.tolist(), strict=True))
+    for index in np.linspace(0, len(views) - 1, min(limit, len(views))).round().astype(int):
+        camera, t = views[index]
+        with torch.no_grad():
+            g = loaded.model.at(float(t))
+            ready = prepare(g, camera)
+            rgb = (eval_sh(g.sh_degree, g.colors[:, : (g.sh_degree + 1) ** 2],
+                           ready.relative_means().float()) if g.sh_degree is not None
+                   else g.colors)  # fmt: skip
+        plain = Gaussians(g.means, g.quats, g.scales, g.opacities, rgb.float(), None)
+        path = folder / f"demo-{index:03d}.npz"
+        save_scene(path, plain, camera)
+        paths.append(path)
+    return paths
+
+
+def run_dyngs(renderer: str, scene: Path, out: Path, repeats: int, backward: bool) -> None:
+    """Child process: render `scene` with a dyngs renderer; the adapters' output format."""
+    from dyngs.renderers import RENDERERS
+
+    s = dict(np.load(scene))
+    width, height = int(s["width"]), int(s["height"])
+    k = s["K"].astype(np.float64)
+    camera = Camera(float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2]),
+                    torch.from_numpy(s["world_to_camera"]), width, height)  # fmt: skip
+    draw = RENDERERS.get(renderer)().build()
+    base = {n: torch.from_numpy(s[n]) for n in ("means", "quats", "scales", "opacities", "colors")}
+    forward_s, total_s, pairs = [], [], None
+    baseline = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    for repeat in range(repeats + 1):
+        leaves = {n: t.clone().requires_grad_(backward) for n, t in base.items()}
+        started = time.perf_counter()
+        out_ = draw(Gaussians(**leaves), camera, torch.zeros(3))
+        middle = time.perf_counter()
         if backward:
-            (out.rgb.sum() + out.depth.sum() + out.alpha.sum()).backward()
-        end = time.perf_counter()
-        times_fwd.append(mid - start)
-        times_total.append(end - start)
-    peak_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    return {
-        "gaussians": n,
-        "size": size,
-        "sigma_px": sigma_px,
-        "tile_size": tile_size or "auto",
-        "backward": backward,
-        "repeats": repeats,
-        "forward_s": statistics.median(times_fwd[1:]),
-        "total_s": statistics.median(times_total[1:]),
-        "peak_rss_mb": peak_kb / 1024,
-        "peak_rss_increase_mb": (peak_kb - baseline_kb) / 1024,
-        "depth_complexity": depth_complexity(gaussians, camera),
-        "visible": int(out.visible.sum()),
-    }
+            (out_.rgb.sum() + out_.alpha.sum()).backward()
+        if repeat > 0:
+            forward_s.append(middle - started)
+            total_s.append(time.perf_counter() - started)
+    work = getattr(draw, "last_work", None)
+    if work is not None:
+        pairs = int(work[:, 1].sum())
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    np.save(out.with_suffix(".npy"), out_.rgb.detach().numpy())
+    out.write_text(json.dumps({"forward_s": forward_s, "total_s": total_s, "pairs": pairs,
+                               "peak_rss_mb": peak / 1024,
+                               "peak_increase_mb": (peak - baseline) / 1024}))  # fmt: skip
+
+
+def measure_rates(threads: int, seconds: float = 0.5) -> dict[str, float]:
+    """The machine's float32 multiply-add rate (operations/s, all threads) and vectorised
+    float32 exp rate (per second, all threads: one core's NumPy rate × threads)."""
+    import numba
+    from numba import njit, prange
+
+    @njit(parallel=True, fastmath=True)
+    def fmas(x: np.ndarray, rounds: int) -> float:  # 8 independent chains per lane
+        total = 0.0
+        for t in prange(x.shape[0]):
+            a = x[t]
+            acc = np.zeros_like(a)
+            for _ in range(rounds):
+                acc = acc * np.float32(0.999) + a
+            total += acc.sum()
+        return total
+
+    numba.set_num_threads(threads)
+    rng = np.random.default_rng(0)
+    x = rng.random((threads * 4, 256), dtype=np.float32)
+    fmas(x, 10)
+    rounds = 20000
+    started = time.perf_counter()
+    fmas(x, rounds)
+    flops = 2 * x.size * rounds / (time.perf_counter() - started)
+    y = -rng.random(4096, dtype=np.float32) * 8
+    np.exp(y)
+    count, started = 0, time.perf_counter()
+    while time.perf_counter() - started < seconds:
+        np.exp(y)
+        count += y.size
+    return {"flops": flops, "exps": threads * count / (time.perf_counter() - started)}
+
+
+def child(kind: str, name: str, python: str, scene: Path, out: Path, args: argparse.Namespace,
+          backward: bool) -> dict:  # fmt: skip
+    env = dict(os.environ, THREADS=str(args.threads), OMP_NUM_THREADS=str(args.threads),
+               NUMBA_NUM_THREADS=str(args.threads))  # fmt: skip
+    extra = ["--backward"] if backward else []
+    if kind == "dyngs":
+        command = [sys.executable, __file__, "--child", name, str(scene), str(out),
+                   "--repeats", str(args.repeats), *extra]  # fmt: skip
+    else:
+        adapter = ROOT / "benchmarks" / "peers" / f"{name}_adapter.py"
+        command = [
+            python,
+            str(adapter),
+            str(scene),
+            str(out),
+            "--repeats",
+            str(args.repeats),
+            *extra,
+        ]
+    done = subprocess.run(command, env=env, capture_output=True, text=True)
+    if done.returncode != 0:
+        return {"error": done.stderr.strip().splitlines()[-1] if done.stderr.strip() else "failed"}
+    result = json.loads(out.read_text())
+    result["image"] = str(out.with_suffix(".npy"))
+    return result
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("--sigma-px", type=float, nargs="+", default=[1.5])
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--sigma-px", type=float, default=1.5)
+    parser.add_argument("--demo-run", type=Path, default=None)
+    parser.add_argument("--demo-frames", type=int, default=5)
     parser.add_argument(
-        "--tile-size", nargs="+", default=["auto"], help="tile sizes, or auto (per frame)"
+        "--peer", action="append", default=[], help="NAME=PYTHON (an adapter in benchmarks/peers)"
     )
-    parser.add_argument("--repeats", type=int, default=7)
-    parser.add_argument("--output", type=Path, default=Path("benchmarks/results/renderer.json"))
-    parser.add_argument("--single", nargs=5, help=argparse.SUPPRESS)
+    parser.add_argument("--only", nargs="*", default=None, help="case names to run")
+    parser.add_argument(
+        "--output", type=Path, default=ROOT / "benchmarks/results/renderer-cpu-tile.json"
+    )
+    parser.add_argument("--child", nargs=3, help=argparse.SUPPRESS)
+    parser.add_argument("--backward", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
-
-    if args.single:  # child process: one configuration, JSON on stdout
-        n, size, sigma, tile, backward = args.single
-        print(
-            json.dumps(
-                run_single(
-                    int(n),
-                    int(size),
-                    float(sigma),
-                    None if tile == "auto" else int(tile),
-                    args.repeats,
-                    backward == "1",
-                )
-            )
+    if args.child:
+        torch.set_num_threads(int(os.environ.get("THREADS", "2")))
+        run_dyngs(
+            args.child[0], Path(args.child[1]), Path(args.child[2]), args.repeats, args.backward
         )
         return
+    report(args)
 
-    rows = []
-    for sigma in args.sigma_px:
-        for tile in args.tile_size:
-            for n, size, target in TARGETS:
-                backward = target is not None
-                single = [str(n), str(size), str(sigma), str(tile), "1" if backward else "0"]
-                cmd = [
-                    sys.executable,
-                    __file__,
-                    "--repeats",
-                    str(args.repeats),
-                    "--single",
-                    *single,
-                ]
-                result = json.loads(
-                    subprocess.run(cmd, capture_output=True, text=True, check=True).stdout
+
+def report(args: argparse.Namespace) -> None:
+    work = Path(tempfile.mkdtemp(prefix="bench-renderer-"))
+    cases: list[tuple[str, Path, bool]] = []
+    for name, n, size, backward in SYNTHETIC:
+        if args.only is None or name in args.only:
+            path = work / f"{name}.npz"
+            save_scene(path, *make_scene(n, size, args.sigma_px))
+            cases.append((name, path, backward))
+    if args.demo_run is not None and (args.only is None or "demo" in args.only):
+        cases += [(p.stem, p, True) for p in demo_frames(args.demo_run, work, args.demo_frames)]
+    peers = dict(p.split("=", 1) for p in args.peer)
+    renderers = [("dyngs", name, sys.executable) for name in DYNGS]
+    renderers += [("peer", name, python) for name, python in peers.items()]
+    runs: dict[tuple[str, str], list[dict]] = {}
+    for round_ in range(args.rounds):
+        for case, scene, backward in cases:
+            for kind, name, python in renderers:
+                out = work / f"{case}-{name}-{round_}.json"
+                result = child(kind, name, python, scene, out, args, backward)
+                runs.setdefault((case, name), []).append(result)
+                status = (
+                    result.get("error") or f"{statistics.median(result['total_s']) * 1e3:.1f} ms"
                 )
-                result["target_s"] = target
-                rows.append(result)
-                met = "" if target is None else ("met" if result["total_s"] <= target else "MISSED")
-                print(
-                    f"N={n:>6} {size:>4}² σ={sigma:<4} tile={tile:<2} "
-                    f"{'fwd+bwd' if backward else 'fwd only'} {result['total_s']:.3f} s "
-                    f"(fwd {result['forward_s']:.3f} s) peak RSS {result['peak_rss_mb']:.0f} MB "
-                    f"depth complexity {result['depth_complexity']:.1f} "
-                    f"{'' if target is None else f'target {target} s: {met}'}",
-                    flush=True,
-                )
+                print(f"round {round_ + 1}: {case:>14} {name:>14}: {status}", flush=True)
+    rates = measure_rates(args.threads)
+    rows = summarise(cases, renderers, runs, rates)
+    print_table(rows, rates)
     args.output.parent.mkdir(parents=True, exist_ok=True)
-    machine = {
-        "platform": platform.platform(),
-        "processor": platform.processor() or platform.machine(),
-        "torch": torch.__version__,
-        "threads": torch.get_num_threads(),
-    }
-    args.output.write_text(json.dumps({"machine": machine, "results": rows}, indent=2) + "\n")
+    args.output.write_text(json.dumps({"machine": machine_info(), "threads": args.threads,
+                                       "rates": rates, "rows": rows}, indent=1) + "\n")  # fmt: skip
     print(f"wrote {args.output}")
+
+
+def summarise(cases: list, renderers: list, runs: dict, rates: dict) -> list[dict]:
+    rows = []
+    for case, _, backward in cases:
+        reference = next((r for r in runs[(case, "cpu-reference")] if "image" in r), None)
+        pairs = next((r["pairs"] for r in runs[(case, "cpu-tile")] if r.get("pairs")), None)
+        for _, name, _ in renderers:
+            good = [r for r in runs[(case, name)] if "total_s" in r]
+            if not good:
+                rows.append(
+                    {"case": case, "renderer": name, "error": runs[(case, name)][0].get("error")}
+                )
+                continue
+            row = {"case": case, "renderer": name, "backward": backward,
+                   "forward_ms": 1e3 * statistics.median(t for r in good for t in r["forward_s"]),
+                   "total_ms": 1e3 * statistics.median(t for r in good for t in r["total_s"]),
+                   "peak_increase_mb": statistics.median(
+                       r.get("peak_increase_mb", math.nan) for r in good)}  # fmt: skip
+            if reference is not None:
+                diff = np.abs(np.load(good[-1]["image"]) - np.load(reference["image"]))
+                row["max_diff_vs_reference"] = float(diff.max())
+            if pairs:
+                cost = FORWARD_FLOPS / rates["flops"] + 1 / rates["exps"]
+                if backward:
+                    cost += BACKWARD_FLOPS / rates["flops"] + 1 / rates["exps"]
+                row["pairs"] = pairs
+                row["limit_ms"] = 1e3 * pairs * cost
+            rows.append(row)
+    return rows
+
+
+def print_table(rows: list[dict], rates: dict) -> None:
+    flops, exps = rates["flops"] / 1e9, rates["exps"] / 1e9
+    print(f"\nrates: {flops:.1f} GFLOP/s (float32 multiply-add), {exps:.2f} G exp/s")
+    header = ("case", "renderer", "fwd ms", "total ms", "× limit", "max diff", "peak MB")
+    print("{:>14} {:>14} {:>9} {:>9} {:>8} {:>9} {:>8}".format(*header))
+    for r in rows:
+        if "error" in r:
+            print(f"{r['case']:>14} {r['renderer']:>14}  error: {r['error']}")
+            continue
+        ratio = r["total_ms"] / r["limit_ms"] if r.get("limit_ms") else math.nan
+        diff = r.get("max_diff_vs_reference", math.nan)
+        print(f"{r['case']:>14} {r['renderer']:>14} {r['forward_ms']:9.1f} {r['total_ms']:9.1f} "
+              f"{ratio:8.1f} {diff:9.2g} {r['peak_increase_mb']:8.0f}")  # fmt: skip
 
 
 if __name__ == "__main__":
