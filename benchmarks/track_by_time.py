@@ -52,7 +52,7 @@ def track(trainer: Trainer, every: int, bins: int) -> list[dict[str, Any]]:
     """Train to the end, measuring `fit_by_time` every `every` steps after the warm-up."""
     rows: list[dict[str, Any]] = []
     started = time.perf_counter()
-    while trainer.step < trainer.config.max_iters:
+    while trainer.step < trainer.config.steps:
         trainer.train_step(trainer.step)
         trainer.step += 1
         if trainer.step % every == 0 and schedules.deforming(trainer.config, trainer.step):

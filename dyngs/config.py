@@ -101,8 +101,14 @@ class TrainConfig:
     """Runs are written to OUTPUT_DIR/RUN_NAME."""
     run_name: str | None = None
     """Folder name of this run (default: method, dataset and start time)."""
-    max_iters: int = 3000
-    """Training iterations, warm-up included."""
+    max_iters: int | None = None
+    """Training iterations, warm-up included. None: sized from the data (more views and
+    timestamps train longer; `training_steps` in dyngs/engine/capacity.py), and the run
+    says how many."""
+    time_budget: float | None = None
+    """Minutes of training the whole schedule must fit in: `max_iters` (given, or sized) is
+    re-planned from the measured step rate as the run goes, and each change is reported
+    (dyngs/engine/budget.py). A budgeted run depends on the machine's speed."""
     warmup_iters: int = 200
     """Static warm-up: the canonical Gaussians alone are fitted for this many iterations."""
     warmup_time: float = 0.05
@@ -151,9 +157,18 @@ class TrainConfig:
     method: tyro.conf.Suppress[str] = "custom"
     """Name of the preset this config came from (set by the CLI)."""
 
+    @property
+    def steps(self) -> int:
+        """`max_iters` once the config is sized for its data (`resolve_capacity`)."""
+        if self.max_iters is None:
+            raise ConfigError("this config's step count is not sized yet (resolve_capacity)")
+        return self.max_iters
+
     def __post_init__(self) -> None:
-        if self.max_iters < 0:
+        if self.max_iters is not None and self.max_iters < 0:
             raise ConfigError(f"--max-iters must be ≥ 0, got {self.max_iters}")
+        if self.time_budget is not None and not self.time_budget > 0:
+            raise ConfigError(f"--time-budget must be positive minutes, got {self.time_budget}")
         if self.warmup_iters < 0:
             raise ConfigError(f"--warmup-iters must be ≥ 0, got {self.warmup_iters}")
         if not 0.0 <= self.warmup_time <= 1.0:

@@ -6,6 +6,7 @@ anything is built, and the run folder records the resolved values:
 - Component configs that size themselves (`DataSized`, e.g. the HexPlane grid: about
   4 pixels per cell at the scene centre, half a cell per timestamp) are given the scene's
   `DataScale`.
+- The step count (`training_steps`), when `--max-iters` is not given.
 - The Gaussian budget: about one Gaussian per image pixel, times √(distinct viewpoints)/8
   within [0.5, 3] (more views resolve more surface), and within [5k, 3M] in all. The
   initial point cloud is subsampled to it too.
@@ -60,6 +61,32 @@ def gaussian_budget(scale: DataScale) -> int:
     return int(min(max(round(scale.image_pixels * views), low), high))
 
 
+STEPS_BASE = 3000
+"""Steps every run takes: a static scene's Gaussians settle in about this many."""
+
+STEPS_PER_TIMESTAMP = 60
+"""Steps added per distinct timestamp: the deformation learns each time from the views of
+it, and a time the window reaches late still needs steps of its own."""
+
+STEPS_LIMITS = (3000, 30000)
+
+
+def training_steps(scene: SceneData) -> int:
+    """The data-sized `max_iters`: `STEPS_BASE` + `STEPS_PER_TIMESTAMP` per timestamp,
+    within `STEPS_LIMITS`, in hundreds."""
+    steps = STEPS_BASE + STEPS_PER_TIMESTAMP * scene.num_timestamps
+    low, high = STEPS_LIMITS
+    return int(min(max(round(steps, -2), low), high))
+
+
+def training_steps_why(scene: SceneData) -> str:
+    """What `training_steps` sized the run from, for the log."""
+    return (
+        f"{STEPS_BASE} + {STEPS_PER_TIMESTAMP} × {scene.num_timestamps} timestamps; "
+        "--max-iters or --time-budget to choose"
+    )
+
+
 def _sized(config: Any, scale: DataScale) -> Any:
     return config.sized_for(scale) if isinstance(config, DataSized) else config
 
@@ -74,8 +101,10 @@ def resolve_capacity(config: TrainConfig, scene: SceneData) -> TrainConfig:
     gaussians = config.gaussians
     if gaussians.max_init_points is None:  # the data-sized budget, even when it was overridden
         gaussians = dataclasses.replace(gaussians, max_init_points=budget)
+    max_iters = training_steps(scene) if config.max_iters is None else config.max_iters
     return dataclasses.replace(
         config,
+        max_iters=max_iters,
         field=_sized(config.field, scale),
         head=_sized(config.head, scale),
         densify=densify,

@@ -27,7 +27,7 @@ def time_window(config: TrainConfig, step: int) -> float:
     linearly to 1 over `time_ramp` of the run."""
     if step < config.warmup_iters:
         return config.warmup_time
-    ramp = config.time_ramp * config.max_iters
+    ramp = config.time_ramp * config.steps
     if ramp <= 0:
         return 1.0
     widened = (1 - config.warmup_time) * (step - config.warmup_iters) / ramp
@@ -36,7 +36,7 @@ def time_window(config: TrainConfig, step: int) -> float:
 
 def window_full_step(config: TrainConfig) -> float:
     """First step at which the time window spans the whole sequence."""
-    return config.warmup_iters + config.time_ramp * config.max_iters
+    return config.warmup_iters + config.time_ramp * config.steps
 
 
 def is_frontier_step(config: TrainConfig, step: int) -> bool:
@@ -53,16 +53,16 @@ def is_frontier_step(config: TrainConfig, step: int) -> bool:
 def learning_progress(config: TrainConfig, step: int) -> tuple[float, float | None]:
     """How far the learning rates have decayed: the run's progress, and the deformation's
     (from the step the time window is full) when `--optim.hold-deformation-rates`."""
-    progress = step / max(config.max_iters, 1)
+    progress = step / max(config.steps, 1)
     if not config.optim.hold_deformation_rates:
         return progress, None
     full = window_full_step(config)
-    return progress, (step - full) / max(config.max_iters - full, 1)
+    return progress, (step - full) / max(config.steps - full, 1)
 
 
 def refine_stop(config: TrainConfig) -> float:
     """Last step that may densify or prune."""
-    return config.densify.refine_stop * config.max_iters
+    return config.densify.refine_stop * config.steps
 
 
 def is_refine_step(config: TrainConfig, step: int) -> bool:
@@ -129,10 +129,10 @@ def sh_evidence_needed(config: TrainConfig, views: int) -> float:
 def schedule_warning(config: TrainConfig) -> str | None:
     """A one-line warning when the run is too short for densification to happen."""
     d = config.densify
-    if config.max_iters > 0 and d.refine_start > refine_stop(config):
+    if config.steps > 0 and d.refine_start > refine_stop(config):
         return (
             f"warning: no densification in this run: it would start at step "
-            f"{d.refine_start} and stop at {d.refine_stop:g} × {config.max_iters} = "
+            f"{d.refine_start} and stop at {d.refine_stop:g} × {config.steps} = "
             f"{refine_stop(config):g} (lower --densify.refine-start)"
         )
     return None

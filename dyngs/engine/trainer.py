@@ -8,6 +8,7 @@ happens to the model between steps (`dyngs.engine.lifecycle`), what is reported
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
@@ -23,7 +24,8 @@ from dyngs.config import TrainConfig
 from dyngs.datamanagers.base import SceneData
 from dyngs.datamanagers.datamanager import DataManager, TrainBatch, load_scene
 from dyngs.engine import schedules
-from dyngs.engine.capacity import pixel_footprint, resolve_capacity
+from dyngs.engine.budget import GROWTH, TimeBudget
+from dyngs.engine.capacity import pixel_footprint, resolve_capacity, training_steps_why
 from dyngs.engine.checkpoint import load_checkpoint, save_checkpoint, upgrade_checkpoint
 from dyngs.engine.evaluate import evaluate
 from dyngs.engine.interrupt import deferred_interrupt
@@ -146,7 +148,12 @@ class Trainer:
         # The renderer first: a machine that cannot run it should say so before any loading.
         self.renderer: Renderer = config.renderer.build()
         self.scene = scene or load_scene(config.data, config.dataset, seed=config.seed)
+        self.sized_steps = config.max_iters is None
         self.config = config = resolve_capacity(config, self.scene)
+        self.budget = None
+        if config.time_budget is not None:
+            ceiling = config.steps * GROWTH if self.sized_steps else config.steps
+            self.budget = TimeBudget(60.0 * config.time_budget, ceiling)
         self.data = DataManager(self.scene, config.dataset, self.device, self.generator)
         self.extent = camera_extent(self.scene)
         self.model = initial_model(config, self.scene, self.generator).to(self.device)
@@ -241,9 +248,17 @@ class Trainer:
     def notes(self) -> list[str]:
         """What a run says before its first step: settings that will not do what they seem."""
         cfg = self.config
-        if self.step >= cfg.max_iters:
+        if self.step >= cfg.steps:
             return []
         notes = [schedules.schedule_warning(cfg), self.lifecycle.importance_note(self.renderer)]
+        if self.sized_steps:
+            why = training_steps_why(self.scene)
+            notes.append(f"[schedule] {cfg.steps} steps, sized from the data ({why})")
+        if self.budget is not None:
+            notes.append(
+                f"[budget] {cfg.time_budget:g} min of training: the {cfg.steps} planned steps are "
+                "re-planned from the measured step rate as the run goes"
+            )
         if cfg.losses.change_weight > 0:
             notes.append(self.objective.change_weight_note())
         return [note for note in notes if note is not None]
@@ -256,10 +271,13 @@ class Trainer:
             deferred_interrupt() as interrupted,
             Progress(*PROGRESS_COLUMNS, console=self.console, transient=False) as progress,
         ):
-            task = progress.add_task("train", total=cfg.max_iters, completed=self.step, info="")
+            task = progress.add_task("train", total=cfg.steps, completed=self.step, info="")
+
+            def show(info: str) -> None:
+                progress.update(task, completed=self.step, total=self.config.steps, info=info)
+
             try:
-                self._loop(lambda info: progress.update(task, completed=self.step, info=info),
-                           interrupted)  # fmt: skip
+                self._loop(show, interrupted)
             except KeyboardInterrupt:
                 self.save()
                 self.writer.flush()
@@ -268,27 +286,28 @@ class Trainer:
                     f"Resume with: dyngs-train --resume {self.run_dir}"
                 )
                 raise
-        self.model.deforming = schedules.deforming(cfg, self.step)
+        self.model.deforming = schedules.deforming(self.config, self.step)
         self.lifecycle.finish(self.step, self.optimizer)
         self.save()
         return self.evaluate()
 
     def _loop(self, show: Callable[[str], None], interrupted: Callable[[], bool]) -> None:
         """Steps until `max_iters`: logs, images and checkpoints at their intervals."""
-        cfg = self.config
         window_start, window_steps, info = time.perf_counter(), 0, ""
-        while self.step < cfg.max_iters:
+        while self.step < self.config.steps:
+            cfg = self.config
             started = time.perf_counter()
             stats = self.train_step(self.step)
             self.step += 1
             self.counters.train_seconds += time.perf_counter() - started
             window_steps += 1
-            if self.step % cfg.log_every == 0 or self.step == cfg.max_iters:
+            if self.step % cfg.log_every == 0 or self.step == cfg.steps:
                 rate = window_steps / max(time.perf_counter() - window_start, 1e-9)
                 info = self.log(stats, rate)
                 window_start, window_steps = time.perf_counter(), 0
                 if not self.console.is_terminal:  # logs and CI get plain lines
-                    self.console.print(f"step {self.step}/{cfg.max_iters}  {info}", highlight=False)
+                    self.console.print(f"step {self.step}/{cfg.steps}  {info}", highlight=False)
+                self.replan()
             if cfg.image_every > 0 and self.step % cfg.image_every == 0:
                 self.writer.image("train/render", stats.out.rgb, self.step)
                 self.writer.image("train/ground_truth", stats.batch.image, self.step)
@@ -299,6 +318,20 @@ class Trainer:
                 hook(self, stats)
             if interrupted():  # Ctrl-C during the step: stop now that it is whole
                 raise KeyboardInterrupt
+
+    def replan(self) -> None:
+        """`--time-budget`: let the budget re-plan the step count from the measured rate."""
+        if self.budget is None:
+            return
+        planned = self.budget.plan(self.step, self.counters.train_seconds, self.config.steps)
+        if planned is not None:
+            self.config = dataclasses.replace(self.config, max_iters=planned)
+            self.lifecycle.config = self.config
+            left = self.budget.seconds - self.counters.train_seconds
+            self.console.print(
+                f"[budget] step {self.step}: {planned} steps fit the {left:.0f} s left",
+                highlight=False, markup=False,
+            )  # fmt: skip
 
     def log(self, stats: StepStats, rate: float) -> str:
         """Write the scalars of the last step and return its progress line."""
@@ -351,6 +384,8 @@ class Trainer:
                 "data": self.data.state_dict(),
                 "generator": self.generator.get_state(),
                 "torch_rng": torch.get_rng_state(),
+                "planned_steps": self.config.steps,
+                "budget": None if self.budget is None else self.budget.state_dict(),
             },
         )
 
@@ -368,4 +403,9 @@ class Trainer:
         self.generator.set_state(state["generator"].cpu())
         torch.set_rng_state(state["torch_rng"].cpu())
         self.counters.load_state_dict(state["counters"])
+        if self.budget is not None and state.get("budget") is not None:
+            # A budgeted run goes on with the plan it had, and the budget's measurements.
+            self.budget.load_state_dict(state["budget"])
+            self.config = dataclasses.replace(self.config, max_iters=int(state["planned_steps"]))
+            self.lifecycle.config = self.config
         self.objective.on_topology()

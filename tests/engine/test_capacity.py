@@ -134,7 +134,7 @@ def test_not_measuring_contribution_changes_no_training_step(tmp_path: Path) -> 
         trainer = tiny_trainer(tmp_path / name, densify=densify, max_iters=16)
         if measure_always:
             trainer.renderer = AlwaysMeasures(trainer.renderer)
-        for step in range(trainer.config.max_iters):
+        for step in range(trainer.config.steps):
             trainer.train_step(step)
             trainer.step = step + 1
         states.append(trainer.model.state_dict())

@@ -207,7 +207,7 @@ def test_real_scene_loss_falls_and_psnr_rises(tmp_path: Path) -> None:
         return float(psnr(out.rgb, view.image))
 
     before = quality()
-    losses = [float(trainer.train_step(step).loss) for step in range(config.max_iters)]
+    losses = [float(trainer.train_step(step).loss) for step in range(config.steps)]
     after = quality()
     assert sum(losses[-20:]) < 0.7 * sum(losses[:20])
     assert after > before + 3.0, (before, after)
@@ -232,7 +232,7 @@ def test_the_importance_pass_is_timed_and_survives_resume(tmp_path: Path, views:
         tiny_config().densify, refine_start=0, refine_every=4, importance_views=views
     )
     trainer = tiny_trainer(tmp_path, densify=densify, max_iters=9)
-    for step in range(trainer.config.max_iters):
+    for step in range(trainer.config.steps):
         trainer.train_step(step)
         trainer.step = step + 1
     spent = trainer.lifecycle.importance_seconds
