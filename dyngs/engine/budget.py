@@ -57,6 +57,11 @@ class TimeBudget:
             return None
         return wanted
 
+    def said(self, step: int, elapsed: float, planned: int) -> str:
+        """The line a re-plan prints."""
+        left = max(self.seconds - elapsed, 0.0)
+        return f"[budget] step {step}: {planned} steps fit the {left:.0f} s left"
+
     def state_dict(self) -> dict[str, Any]:
         return {"seconds": self.seconds, "ceiling": self.ceiling, "marks": list(self.marks)}
 

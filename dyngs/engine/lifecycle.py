@@ -43,6 +43,7 @@ from dyngs.engine.writer import Writer
 from dyngs.fields.base import Croppable
 from dyngs.model import DynamicGaussians
 from dyngs.renderers.base import ContributionRenderer, Renderer, RenderOutput
+from dyngs.types import Camera, Gaussians
 
 
 class Lifecycle:
@@ -110,6 +111,15 @@ class Lifecycle:
                 "Gaussian's contribution: pruning by opacity and size only"
             )
         return None
+
+    def render(
+        self, renderer: Renderer, gaussians: Gaussians, camera: Camera, background: Tensor
+    ) -> RenderOutput:
+        """A training step's render, measuring contributions when pruning reads them each
+        step (`measures_each_step`)."""
+        if self.measures_each_step(renderer) and isinstance(renderer, ContributionRenderer):
+            return renderer.with_contribution(gaussians, camera, background)
+        return renderer(gaussians, camera, background)
 
     def gather(self, out: RenderOutput, batch: TrainBatch, probe: int | None) -> None:
         """Add a good step's statistics (call after backward, before the optimizer step)."""

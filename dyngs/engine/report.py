@@ -10,11 +10,13 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from dyngs.config import TrainConfig
 from dyngs.datamanagers.datamanager import TrainBatch
 from dyngs.engine.motion import model_bytes
 from dyngs.engine.writer import Writer
 from dyngs.metrics import psnr
 from dyngs.model import DynamicGaussians
+from dyngs.renderers import renderer_name
 from dyngs.renderers.base import RenderOutput
 
 
@@ -98,3 +100,34 @@ def log_step(
         f"dynamic {costs['dynamic_fraction']:.1%}  "
         f"{costs['model_bytes'] / 2**20:.1f} MiB  {rate:.1f} it/s{skipped}"
     )
+
+
+def run_summary(
+    model: DynamicGaussians,
+    counters: Counters,
+    config: TrainConfig,
+    step: int,
+    device: torch.device,
+    importance_seconds: float,
+) -> dict[str, object]:
+    """What metrics.json says of a finished run besides its image metrics."""
+    return {
+        "num_gaussians": len(model.canonical),
+        **capacity(model, counters),
+        "static_scene": config.motion.separate and not model.any_dynamic(),
+        "train_seconds": counters.train_seconds,
+        "importance_seconds": importance_seconds,
+        "iterations": step,
+        "skipped_steps": counters.skipped_steps,
+        "renderer": renderer_name(config.renderer),
+        "device": str(device),
+    }
+
+
+def write_metrics(writer: Writer, split: str, metrics: dict[str, object], step: int) -> None:
+    """The evaluated split's PSNR, SSIM and LPIPS to TensorBoard."""
+    for key in ("psnr", "ssim", "lpips"):
+        value = metrics.get(key)
+        if isinstance(value, float | int):
+            writer.scalar(f"{split}/{key}", float(value), step)
+    writer.flush()

@@ -136,3 +136,17 @@ def schedule_warning(config: TrainConfig) -> str | None:
             f"{refine_stop(config):g} (lower --densify.refine-start)"
         )
     return None
+
+
+def plan_notes(config: TrainConfig, sized: str | None) -> list[str | None]:
+    """What a run says of its plan before its first step: a densification window it is too
+    short for, a step count sized from the data (`sized` says from what), a time budget."""
+    notes = [schedule_warning(config)]
+    if sized is not None:
+        notes.append(f"[schedule] {config.steps} steps, sized from the data ({sized})")
+    if config.time_budget is not None:
+        notes.append(
+            f"[budget] {config.time_budget:g} min of training: the {config.steps} planned "
+            "steps are re-planned from the measured step rate as the run goes"
+        )
+    return notes

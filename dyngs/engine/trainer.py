@@ -32,13 +32,11 @@ from dyngs.engine.interrupt import deferred_interrupt
 from dyngs.engine.lifecycle import Lifecycle
 from dyngs.engine.objective import Objective
 from dyngs.engine.optim import build_optimizer, set_learning_rates
-from dyngs.engine.report import Counters, StepStats, capacity, log_step
+from dyngs.engine.report import Counters, StepStats, log_step, run_summary, write_metrics
 from dyngs.engine.writer import Writer
 from dyngs.errors import ConfigError, UserError
 from dyngs.model import CanonicalGaussians, DynamicGaussians, subsample_points
-from dyngs.renderers import renderer_name
-from dyngs.renderers.base import ContributionRenderer, Renderer, RenderOutput
-from dyngs.types import Gaussians
+from dyngs.renderers.base import Renderer
 
 CHECKPOINT_NAME = "checkpoint.pt"
 
@@ -189,7 +187,7 @@ class Trainer:
         probe = self.lifecycle.probe_degree()
         gaussians = model.at(batch.time, sh_degree=probe)
         self.counters.deformation_seconds += time.perf_counter() - started if model.deforms else 0
-        out = self.render(gaussians, batch)
+        out = self.lifecycle.render(self.renderer, gaussians, batch.camera, self.data.background)
         self.nonfinite_culled += out.num_nonfinite.to(self.nonfinite_culled.device)
 
         terms = self.objective.terms(model, out, batch, gaussians, step)
@@ -221,16 +219,6 @@ class Trainer:
             return self.data.next_frontier(window, self.config.frontier_span)
         return self.data.next_train(max_time=window)
 
-    def render(self, gaussians: Gaussians, batch: TrainBatch) -> RenderOutput:
-        """The step's render, measuring contributions when pruning reads them each step."""
-        background = self.data.background
-        renderer = self.renderer
-        if self.lifecycle.measures_each_step(renderer) and isinstance(
-            renderer, ContributionRenderer
-        ):
-            return renderer.with_contribution(gaussians, batch.camera, background)
-        return renderer(gaussians, batch.camera, background)
-
     def _count(self, step: int, good: bool) -> None:
         """Count a skipped step; a streak of `--max-bad-steps` stops the run."""
         counters = self.counters
@@ -250,15 +238,8 @@ class Trainer:
         cfg = self.config
         if self.step >= cfg.steps:
             return []
-        notes = [schedules.schedule_warning(cfg), self.lifecycle.importance_note(self.renderer)]
-        if self.sized_steps:
-            why = training_steps_why(self.scene)
-            notes.append(f"[schedule] {cfg.steps} steps, sized from the data ({why})")
-        if self.budget is not None:
-            notes.append(
-                f"[budget] {cfg.time_budget:g} min of training: the {cfg.steps} planned steps are "
-                "re-planned from the measured step rate as the run goes"
-            )
+        sized = training_steps_why(self.scene) if self.sized_steps else None
+        notes = [*schedules.plan_notes(cfg, sized), self.lifecycle.importance_note(self.renderer)]
         if cfg.losses.change_weight > 0:
             notes.append(self.objective.change_weight_note())
         return [note for note in notes if note is not None]
@@ -325,13 +306,12 @@ class Trainer:
             return
         planned = self.budget.plan(self.step, self.counters.train_seconds, self.config.steps)
         if planned is not None:
-            self.config = dataclasses.replace(self.config, max_iters=planned)
-            self.lifecycle.config = self.config
-            left = self.budget.seconds - self.counters.train_seconds
-            self.console.print(
-                f"[budget] step {self.step}: {planned} steps fit the {left:.0f} s left",
-                highlight=False, markup=False,
-            )  # fmt: skip
+            self._set_steps(planned)
+            said = self.budget.said(self.step, self.counters.train_seconds, planned)
+            self.console.print(said, highlight=False, markup=False)
+
+    def _set_steps(self, steps: int) -> None:
+        self.config = self.lifecycle.config = dataclasses.replace(self.config, max_iters=steps)
 
     def log(self, stats: StepStats, rate: float) -> str:
         """Write the scalars of the last step and return its progress line."""
@@ -349,25 +329,10 @@ class Trainer:
         split = self.config.eval_split
         metrics = evaluate(self.model, self.renderer, self.data, split, self.run_dir / split,
                            self.device, self.console)  # fmt: skip
-        metrics |= {
-            "num_gaussians": len(self.model.canonical),
-            **capacity(self.model, self.counters),
-            "static_scene": self.config.motion.separate and not self.model.any_dynamic(),
-            "train_seconds": self.counters.train_seconds,
-            "importance_seconds": self.lifecycle.importance_seconds,
-            "iterations": self.step,
-            "skipped_steps": self.counters.skipped_steps,
-            "renderer": renderer_name(self.config.renderer),
-            "device": str(self.device),
-        }
-        for key in ("psnr", "ssim", "lpips"):
-            value = metrics.get(key)
-            if value is not None:
-                self.writer.scalar(f"{split}/{key}", value, self.step)
-        self.writer.flush()
+        metrics |= run_summary(self.model, self.counters, self.config, self.step, self.device,
+                               self.lifecycle.importance_seconds)  # fmt: skip
+        write_metrics(self.writer, split, metrics, self.step)
         return metrics
-
-    # ------------------------------------------------------------ checkpoints
 
     def checkpoint_path(self) -> Path:
         return self.run_dir / CHECKPOINT_NAME
@@ -404,8 +369,6 @@ class Trainer:
         torch.set_rng_state(state["torch_rng"].cpu())
         self.counters.load_state_dict(state["counters"])
         if self.budget is not None and state.get("budget") is not None:
-            # A budgeted run goes on with the plan it had, and the budget's measurements.
-            self.budget.load_state_dict(state["budget"])
-            self.config = dataclasses.replace(self.config, max_iters=int(state["planned_steps"]))
-            self.lifecycle.config = self.config
+            self.budget.load_state_dict(state["budget"])  # and go on with the plan it had
+            self._set_steps(int(state["planned_steps"]))
         self.objective.on_topology()
