@@ -72,9 +72,7 @@ WINDOW_VIEWPOINTS = 4
 MAX_WINDOWS = 16
 """At most this many windows are carved, spread evenly over the sequence."""
 
-FIRST_WINDOW_SHARE = float(
-    __import__("os").environ.get("DYNGS_EXP_FIRST_SHARE", "0.5")
-)  # EXPERIMENT
+FIRST_WINDOW_SHARE = 0.5
 """Share of the carved points from the earliest window: the canonical Gaussians are fitted
 to the start of the sequence first (the warm-up)."""
 
