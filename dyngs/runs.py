@@ -90,9 +90,8 @@ def new_run_dir(config: TrainConfig) -> Path:
 def join_group(config: TrainConfig) -> ProcessGroup:
     """The processes this run trains in (torchrun's, or this one alone), checked to be no
     more than a step's views."""
-    group = ProcessGroup.join(config.collective_timeout, config.device)
-    check_batch(group, config.batch_views)
-    return group
+    check_batch(ProcessGroup.requested_size(), config.batch_views)  # before waiting for peers
+    return ProcessGroup.join(config.collective_timeout, config.device)
 
 
 def run_training(

@@ -22,6 +22,7 @@ from __future__ import annotations
 import datetime
 import hashlib
 import os
+import re
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -54,6 +55,7 @@ def _lost(error: Exception, rank: int) -> RankLost:
     """A failed collective as one line: gloo reports a dead peer as a closed connection
     on the next collective, and a silent one as a timeout."""
     first = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+    first = re.sub(r"^\[[^\]]*\.(cc|cpp|h):\d+\]\s*", "", first)  # gloo's source location
     return RankLost(f"rank {rank}: another process of the run stopped answering ({first})")
 
 
@@ -75,11 +77,16 @@ class ProcessGroup:
         return self.rank == 0
 
     @staticmethod
+    def requested_size() -> int:
+        """How many processes the launcher started (WORLD_SIZE; 1 without one)."""
+        return int(os.environ.get("WORLD_SIZE", "1"))
+
+    @staticmethod
     def join(timeout_s: float, device: str = "auto") -> ProcessGroup:
         """The group torchrun's environment describes, initialised; one process when the
         environment names none. Collectives wait at most `timeout_s` for the others.
         `device` (the run's `--device`) picks the backend: NCCL when it trains on CUDA."""
-        size = int(os.environ.get("WORLD_SIZE", "1"))
+        size = ProcessGroup.requested_size()
         if size <= 1:
             return ProcessGroup()
         missing = [name for name in ENVIRONMENT if name not in os.environ]
@@ -192,11 +199,11 @@ SINGLE = ProcessGroup()
 """The group of one process: no collectives, rank 0."""
 
 
-def check_batch(group: ProcessGroup, batch_views: int) -> None:
+def check_batch(processes: int, batch_views: int) -> None:
     """Each process renders at least one view per step: P processes need P views."""
-    if group.size > batch_views:
+    if processes > batch_views:
         raise ConfigError(
-            f"{group.size} processes but --batch-views {batch_views}: each process renders "
-            f"its share of a step's views, so use --batch-views {group.size} or more (or "
+            f"{processes} processes but --batch-views {batch_views}: each process renders "
+            f"its share of a step's views, so use --batch-views {processes} or more (or "
             f"start at most {batch_views} processes)"
         )

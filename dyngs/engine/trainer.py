@@ -158,7 +158,7 @@ class Trainer:
         self.writer = writer
         self.console = console or Console()
         self.group = group
-        check_batch(group, config.batch_views)
+        check_batch(group.size, config.batch_views)
         self.device = group.device(resolve_device(config.device))
         torch.manual_seed(config.seed)
         self.generator = torch.Generator().manual_seed(config.seed)
