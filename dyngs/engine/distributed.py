@@ -56,6 +56,7 @@ def _lost(error: Exception, rank: int) -> RankLost:
     on the next collective, and a silent one as a timeout."""
     first = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
     first = re.sub(r"^\[[^\]]*\.(cc|cpp|h):\d+\]\s*", "", first)  # gloo's source location
+    first = first.split(". ")[0]  # gloo goes on with advice to read the other's logs
     return RankLost(f"rank {rank}: another process of the run stopped answering ({first})")
 
 
