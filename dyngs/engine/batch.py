@@ -86,12 +86,15 @@ def exchange(
     if not group.distributed:
         return stats
     params = [p for g in optimizer.param_groups for p in g["params"]]
-    grads = [torch.zeros_like(p) if p.grad is None else p.grad for p in params]
-    flags = [float(p.grad is not None) for p in params]
-    reached = torch.tensor(flags, dtype=loss.dtype, device=loss.device)
+    # Which parameters any rank reached, first (a few bytes): the field gets no gradient
+    # through the static warm-up, and its zeros need not travel.
+    reached = torch.tensor([float(p.grad is not None) for p in params], device=loss.device)
+    group.sum_([reached])
+    params = [p for p, any_rank in zip(params, reached.tolist(), strict=True) if any_rank > 0]
+    for p in params:
+        if p.grad is None:
+            p.grad = torch.zeros_like(p)
     stats = stats or StepStatistics.zeros(n, loss.device)
-    group.sum_([*grads, reached, loss, *stats.sums()])
+    group.sum_([*(p.grad for p in params if p.grad is not None), loss, *stats.sums()])
     group.max_(stats.maxima())
-    for p, grad, any_rank in zip(params, grads, reached.tolist(), strict=True):
-        p.grad = grad if any_rank > 0 else None
     return stats
