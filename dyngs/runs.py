@@ -90,7 +90,13 @@ def new_run_dir(config: TrainConfig) -> Path:
 def join_group(config: TrainConfig) -> ProcessGroup:
     """The processes this run trains in (torchrun's, or this one alone), checked to be no
     more than a step's views."""
-    check_batch(ProcessGroup.requested_size(), config.batch_views)  # before waiting for peers
+    processes = ProcessGroup.requested_size()
+    check_batch(processes, config.batch_views)  # before waiting for peers
+    if processes > 1 and config.eval_split == "train":
+        raise ConfigError(
+            "--eval-split train with several processes: each holds only its share of the "
+            "training images; evaluate afterwards with dyngs-eval --split train"
+        )
     return ProcessGroup.join(config.collective_timeout, config.device)
 
 
