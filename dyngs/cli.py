@@ -18,7 +18,7 @@ from rich.table import Table
 from dyngs.configio import load_config
 from dyngs.engine.trainer import CHECKPOINT_NAME
 from dyngs.errors import ConfigError
-from dyngs.runs import new_run_dir, parse_train_args, run_training
+from dyngs.runs import join_group, new_run_dir, parse_train_args, run_training
 from dyngs.tools.common import run_tool
 
 SUMMARY_KEYS = (
@@ -57,13 +57,17 @@ def main(argv: Sequence[str] | None = None) -> None:
             config = load_config(run_dir / "config.json")
             if not (run_dir / CHECKPOINT_NAME).exists():
                 raise ConfigError(f"{run_dir / CHECKPOINT_NAME}: no checkpoint to resume from")
-            metrics = run_training(config, run_dir, console, resume=True)
+            group = join_group(config)  # under torchrun: data-parallel (docs/DISTRIBUTED.md)
+            metrics = run_training(config, run_dir, console, resume=True, group=group)
         else:
             config = parse_train_args(args, description=__doc__)
-            run_dir = new_run_dir(config)
-            metrics = run_training(config, run_dir, console)
-        console.print(summary_table(metrics))
-        console.print(f"run folder: {run_dir}")
+            group = join_group(config)
+            run_dir = group.decide(lambda: new_run_dir(config))  # rank 0 names it
+            metrics = run_training(config, run_dir, console, group=group)
+        if group.is_main:
+            console.print(summary_table(metrics))
+            console.print(f"run folder: {run_dir}")
+        group.close()
 
     run_tool(body)
 

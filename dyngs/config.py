@@ -126,6 +126,12 @@ class TrainConfig:
     frontier_span: float = 0.1
     """Width in t of the newest part of the window that `frontier-share` draws from (the
     latest views when none is that recent)."""
+    batch_views: int = 1
+    """Views per training step, the loss averaged over them. Under torchrun each process
+    renders its share of them (docs/DISTRIBUTED.md), so P processes need at least P."""
+    collective_timeout: float = 600.0
+    """Several processes: seconds one waits for the others in a step before it stops the
+    run with its last checkpoint (a dead process is noticed at once)."""
     seed: int = 0
     """Seeds every random choice (initialisation, view order, densification)."""
     device: str = "auto"
@@ -179,6 +185,12 @@ class TrainConfig:
             raise ConfigError(f"--frontier-share must be in [0, 1], got {self.frontier_share}")
         if not 0.0 < self.frontier_span <= 1.0:
             raise ConfigError(f"--frontier-span must be in (0, 1], got {self.frontier_span}")
+        if self.batch_views < 1:
+            raise ConfigError(f"--batch-views must be ≥ 1, got {self.batch_views}")
+        if not self.collective_timeout > 0:
+            raise ConfigError(
+                f"--collective-timeout must be positive seconds, got {self.collective_timeout}"
+            )
         if self.max_bad_steps < 1:
             raise ConfigError(f"--max-bad-steps must be ≥ 1, got {self.max_bad_steps}")
         if self.eval_split not in ("train", "val", "test"):

@@ -32,6 +32,7 @@ from dyngs.datamanagers.datamanager import DataManager, load_scene
 from dyngs.datamanagers.scene_info import SCENE_FILE, SceneInfo
 from dyngs.engine import schedules
 from dyngs.engine.checkpoint import load_checkpoint, upgrade_checkpoint
+from dyngs.engine.distributed import SINGLE, ProcessGroup, check_batch
 from dyngs.engine.trainer import CHECKPOINT_NAME, StepHook, Trainer, resolve_device
 from dyngs.engine.writer import NullWriter, TensorBoardWriter, Writer
 from dyngs.errors import ConfigError, DatasetError
@@ -86,29 +87,48 @@ def new_run_dir(config: TrainConfig) -> Path:
     return run_dir
 
 
+def join_group(config: TrainConfig) -> ProcessGroup:
+    """The processes this run trains in (torchrun's, or this one alone), checked to be no
+    more than a step's views."""
+    processes = ProcessGroup.requested_size()
+    check_batch(processes, config.batch_views)  # before waiting for peers
+    if processes > 1 and config.eval_split == "train":
+        raise ConfigError(
+            "--eval-split train with several processes: each holds only its share of the "
+            "training images; evaluate afterwards with dyngs-eval --split train"
+        )
+    return ProcessGroup.join(config.collective_timeout, config.device)
+
+
 def run_training(
     config: TrainConfig,
     run_dir: Path,
     console: Console,
     resume: bool = False,
     hooks: Sequence[StepHook] = (),
+    group: ProcessGroup = SINGLE,
 ) -> dict[str, Any]:
     """Train into `run_dir` (continuing its checkpoint with `resume`) and write
-    metrics.json; returns the metrics. `hooks` are called after every step."""
-    writer: Writer = (
-        TensorBoardWriter(run_dir / "tensorboard") if config.tensorboard else NullWriter()
-    )
+    metrics.json; returns the metrics. `hooks` are called after every step. Of several
+    processes (`group`), rank 0 alone writes files and reports; the others return {}."""
+    main = group.is_main
+    writer: Writer = NullWriter()
+    if config.tensorboard and main:
+        writer = TensorBoardWriter(run_dir / "tensorboard")
     try:
-        trainer = Trainer(config, run_dir, writer, console, hooks=hooks)
+        trainer = Trainer(config, run_dir, writer, console if main else Console(quiet=True),
+                          hooks=hooks, group=group)  # fmt: skip
         if resume:
             trainer.load(run_dir / CHECKPOINT_NAME)
-            console.print(f"resuming {run_dir} at step {trainer.step}")
-        else:
+            if main:
+                console.print(f"resuming {run_dir} at step {trainer.step}")
+        elif main:
             save_config(run_dir / "config.json", trainer.config)  # with data-sized values
-        if resume or not (run_dir / SCENE_FILE).exists():
+        if main and (resume or not (run_dir / SCENE_FILE).exists()):
             SceneInfo.of(trainer.scene).write(run_dir / SCENE_FILE)
         metrics = trainer.train()
-        write_json(run_dir / "metrics.json", metrics)
+        if main:
+            write_json(run_dir / "metrics.json", metrics)
     finally:
         writer.close()
     return metrics

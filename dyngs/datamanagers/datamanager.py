@@ -5,7 +5,8 @@ Letters: H×W image.
 
 from __future__ import annotations
 
-from bisect import bisect_left, bisect_right
+import dataclasses
+from bisect import bisect_right
 from collections.abc import Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
@@ -23,6 +24,7 @@ from dyngs.datamanagers.formats import FORMATS
 from dyngs.datamanagers.init_points import INITIAL_POINTS, choose_initial_points
 from dyngs.datamanagers.procedural import demo_path
 from dyngs.datamanagers.progress import report
+from dyngs.datamanagers.sampler import STRATUM_SEED_STRIDE, ViewSampler, strata
 from dyngs.errors import ConfigError, DatasetError
 from dyngs.types import Camera
 
@@ -154,19 +156,23 @@ class TrainBatch:
 class _ServedSplit:
     """A split's cameras on the device and its images either as float32 on the device
     (converted once) or as uint8 on the CPU (converted per batch). Lazy uint8 images are
-    read one view ahead in a thread, so disk and decoding overlap the training step."""
+    read one view ahead in a thread, so disk and decoding overlap the training step.
+    With `held`, only those views' images are served (another process serves the rest)."""
 
-    def __init__(self, split: Split, device: torch.device, cache: bool) -> None:
+    def __init__(
+        self, split: Split, device: torch.device, cache: bool, held: set[int] | None = None
+    ) -> None:
         self.device = device
         self.cached = cache
+        self.held = held
         self.cameras = [camera.to(device) for camera in split.cameras]
         self.times = [float(t) for t in split.times]
-        self.images: Sequence[Tensor] = split.images
-        self.masks: Sequence[Tensor] | None = split.masks
+        self.images: Sequence[Tensor | None] = split.images
+        self.masks: Sequence[Tensor | None] | None = split.masks
         if cache:
-            self.images = [self._to_float(image) for image in split.images]
+            self.images = self._converted(split.images)
             if split.masks is not None:
-                self.masks = [self._to_float(mask) for mask in split.masks]
+                self.masks = self._converted(split.masks)
             for source in (split.images, split.masks):
                 if isinstance(source, LazyImages):
                     source.clear()  # the float copies serve from now on
@@ -174,15 +180,28 @@ class _ServedSplit:
         self._pool = ThreadPoolExecutor(1) if lazy and not cache else None
         self._ahead: tuple[int, Future[tuple[Tensor, Tensor | None]]] | None = None
 
+    def __contains__(self, index: int) -> bool:
+        """Whether view `index` is served here."""
+        return self.held is None or index in self.held
+
+    def _converted(self, images: Sequence[Tensor]) -> list[Tensor | None]:
+        """Float copies on the device of the served views (None for the others)."""
+        return [self._to_float(images[i]) if i in self else None for i in range(len(images))]
+
     def _to_float(self, image: Tensor) -> Tensor:
         return image.to(self.device, non_blocking=True).float().div_(255.0)
 
     def _read(self, index: int) -> tuple[Tensor, Tensor | None]:
-        return self.images[index], None if self.masks is None else self.masks[index]
+        if index not in self:
+            raise ValueError(f"view {index} is served by another process")
+        image = self.images[index]
+        mask = None if self.masks is None else self.masks[index]
+        assert image is not None
+        return image, mask
 
     def read_ahead(self, index: int) -> None:
         """Start reading view `index` (lazy splits only); its `batch` then waits for it."""
-        if self._pool is not None and 0 <= index < len(self):
+        if self._pool is not None and 0 <= index < len(self) and index in self:
             if self._ahead is None or self._ahead[0] != index:
                 self._ahead = (index, self._pool.submit(self._read, index))
 
@@ -201,10 +220,30 @@ class _ServedSplit:
         return len(self.cameras)
 
 
-def _float_bytes(split: Split) -> int:
-    """Bytes of the split as float32 (sizes read without loading lazy images)."""
+class HeldFrames(Sequence[Tensor]):
+    """A split's frames of which this process holds only some; asking for another is a
+    bug (the process renders only its own views), and says so."""
+
+    def __init__(self, frames: dict[int, Tensor], length: int) -> None:
+        self._frames = frames
+        self._length = length
+
+    def __len__(self) -> int:
+        return self._length
+
+    def __getitem__(self, index: int) -> Tensor:  # type: ignore[override]
+        if index not in self._frames:
+            raise ValueError(f"frame {index} is held by another process")
+        return self._frames[index]
+
+
+def _float_bytes(split: Split, held: set[int] | None = None) -> int:
+    """Bytes of the split (of its `held` views) as float32, sizes read without loading
+    lazy images."""
     pixels = 0
     for index in range(len(split.images)):
+        if held is not None and index not in held:
+            continue
         height, width = image_size(split.images, index)
         pixels += height * width
     channels = 3 + (1 if split.masks is not None else 0)
@@ -214,10 +253,16 @@ def _float_bytes(split: Split) -> int:
 class DataManager:
     """Serves shuffled training views and ordered evaluation views.
 
-    The training order is a fresh permutation each epoch. Permutation e is drawn from
-    a generator seeded with (s + e), where s is drawn once from the generator given to
+    A step draws `batch_views` views, one from each stratum of the training views
+    (`dyngs.datamanagers.sampler`); each stratum's order is a fresh permutation every
+    epoch. The strata's seeds come from one number s drawn from the generator given to
     the constructor: runs are reproducible from that generator, and the whole sequence
-    state is three integers (see `state_dict`), independent of whoever else uses it.
+    state is a few integers per stratum (see `state_dict`), independent of whoever else
+    uses it. With one view per step, the one stratum's seed is s itself.
+
+    `shard` (rank, processes) keeps only the images of the strata that rank renders
+    (strata rank, rank + processes, …): every rank draws the same views, and each holds
+    and converts only its share, so memory per process falls with the process count.
     """
 
     def __init__(
@@ -226,33 +271,55 @@ class DataManager:
         config: DataConfig,
         device: torch.device,
         generator: torch.Generator,
+        batch_views: int = 1,
+        shard: tuple[int, int] = (0, 1),
     ) -> None:
         if len(scene.train) == 0:
             raise DatasetError(f"{scene.name}: the train split is empty")
+        if batch_views > len(scene.train):
+            raise ConfigError(
+                f"--batch-views {batch_views} is more than the {len(scene.train)} training "
+                f"views of {scene.name}"
+            )
         self.scene = scene
         self.config = config
         self.device = torch.device(device)
         self.background = scene.background.to(self.device)
+        train_times = [float(t) for t in scene.train.times]
+        self.strata = strata(train_times, batch_views)
+        rank, processes = shard
+        self.held = sorted(i for stratum in self.strata[rank::processes] for i in stratum)
+        # Evaluation runs on rank 0: other ranks keep no float copies of val and test.
         budget = config.device_cache_bytes
+        self._splits = self._serve(scene, budget, set(self.held), evaluates=rank == 0)
+        self._earliest = min(train_times)
+        seed = int(torch.randint(0, 2**62, (1,), generator=generator))
+        self.samplers = [
+            ViewSampler(train_times, views, seed + k * STRATUM_SEED_STRIDE)
+            for k, views in enumerate(self.strata)
+        ]
+        self._stratum_of = {i: k for k, views in enumerate(self.strata) for i in views}
+        self._by_time = sorted(range(len(train_times)), key=train_times.__getitem__)
+        self._sorted_times = [train_times[i] for i in self._by_time]
+
+    def _serve(
+        self, scene: SceneData, budget: int, held: set[int], evaluates: bool = True
+    ) -> dict[str, _ServedSplit]:
+        """Each split served, float images on the device while `budget` bytes last (of
+        the train split, only the `held` views; of the others, only where `evaluates`)."""
         served: dict[int, _ServedSplit] = {}  # by id: val may be the test split itself
-        self._splits: dict[str, _ServedSplit] = {}
+        splits: dict[str, _ServedSplit] = {}
         for name in ("train", "val", "test"):
             split: Split = getattr(scene, name)
             if id(split) not in served:
-                cost = _float_bytes(split)
-                cache = cost <= budget
+                whole = split is not scene.train or len(held) == len(split)
+                keep = None if whole else held
+                cost = _float_bytes(split, keep)
+                cache = cost <= budget and (evaluates or split is scene.train)
                 budget -= cost if cache else 0
-                served[id(split)] = _ServedSplit(split, self.device, cache)
-            self._splits[name] = served[id(split)]
-        self._earliest = min(self._splits["train"].times, default=0.0)
-        self._seed = int(torch.randint(0, 2**62, (1,), generator=generator))
-        self._epoch = 0
-        self._position = 0
-        self._order = self._permutation(0)
-        train_times = self._splits["train"].times
-        self._by_time = sorted(range(len(train_times)), key=train_times.__getitem__)
-        self._sorted_times = [train_times[i] for i in self._by_time]
-        self._frontier_draws = 0
+                served[id(split)] = _ServedSplit(split, self.device, cache, keep)
+            splits[name] = served[id(split)]
+        return splits
 
     @cached_property
     def fixed_cameras(self) -> FixedCameras | None:
@@ -264,57 +331,63 @@ class DataManager:
     def num_train(self) -> int:
         return len(self._splits["train"])
 
+    def release_others(self) -> None:
+        """Drop this process's references to the training images other processes serve
+        (call once whatever reads every image, such as the fixed cameras' medians, has)."""
+        train = self.scene.train
+        if len(self.held) == len(train) or isinstance(train.images, LazyImages):
+            return  # lazy frames are read on demand: only the held ones ever are
+        held = set(self.held)
+        images = HeldFrames({i: train.images[i] for i in held}, len(train))
+        masks = None
+        if train.masks is not None:
+            masks = HeldFrames({i: train.masks[i] for i in held}, len(train))
+        self.scene = dataclasses.replace(self.scene, train=dataclasses.replace(
+            train, images=images, masks=masks))  # fmt: skip
+
+    @property
+    def batch_views(self) -> int:
+        return len(self.samplers)
+
     @property
     def epoch(self) -> int:
-        """Completed passes over the train split."""
-        return self._epoch
-
-    def _permutation(self, epoch: int) -> list[int]:
-        generator = torch.Generator().manual_seed(self._seed + epoch)
-        return torch.randperm(self.num_train, generator=generator).tolist()
+        """Completed passes over the first stratum (every view, with one view per step)."""
+        return self.samplers[0].epoch
 
     def next_train(self, max_time: float = 1.0) -> TrainBatch:
-        """The next training view; every view comes once per epoch, in shuffled order.
+        """The next training view of the first stratum (with one view per step: of all
+        views, each once per epoch in shuffled order). Views later than `max_time` are
+        passed over in this epoch (a time curriculum); if none is that early, the
+        earliest views stand in."""
+        return self.train_batch(self.samplers[0].next(max_time))
 
-        Views later than `max_time` are passed over in this epoch (a time curriculum); if
-        none is that early, the earliest views stand in.
-        """
+    def next_frontier(self, max_time: float, span: float) -> TrainBatch:
+        """A training view of the first stratum from the newest `span` of the time window
+        (`ViewSampler.frontier`)."""
+        return self.train_batch(self.samplers[0].frontier(max_time, span))
+
+    def next_views(self, max_time: float, frontier_span: float | None = None) -> list[int]:
+        """A step's views, one per stratum (the same on every rank): the next of each
+        stratum's epoch within `max_time`, or, with `frontier_span`, drawn from the newest
+        part of the window."""
+        if frontier_span is None:
+            return [sampler.next(max_time) for sampler in self.samplers]
+        return [sampler.frontier(max_time, frontier_span) for sampler in self.samplers]
+
+    def train_batch(self, index: int) -> TrainBatch:
+        """Training view `index` (one this process holds). The next view of its stratum's
+        epoch is read ahead (lazy splits), to overlap the step."""
         served = self._splits["train"]
-        max_time = max(max_time, self._earliest)
-        while True:
-            if self._position >= len(self._order):
-                self._epoch += 1
-                self._position = 0
-                self._order = self._permutation(self._epoch)
-            index = self._order[self._position]
-            self._position += 1
-            if served.times[index] <= max_time:
-                break
         batch = served.batch(index)
-        if self._position < len(self._order):
-            served.read_ahead(self._order[self._position])
+        upcoming = self.samplers[self._stratum_of[index]].upcoming()
+        if upcoming is not None and upcoming in served:
+            served.read_ahead(upcoming)
         return batch
 
     def _window_end(self, max_time: float) -> int:
         """How many training views, in time order, have t ≤ max_time; when none has, the
         earliest views stand in (as in `next_train`)."""
         return bisect_right(self._sorted_times, max(max_time, self._earliest))
-
-    def next_frontier(self, max_time: float, span: float) -> TrainBatch:
-        """A training view from the newest `span` of the time window: drawn at random from
-        those with max_time − span ≤ t ≤ max_time (the latest views before max_time when
-        none is that recent). Draw k uses a generator seeded with (s + 2⁶² + k), so the
-        draws never repeat the epochs' permutations and resume exactly from a counter.
-        """
-        served = self._splits["train"]
-        times = self._sorted_times
-        end = self._window_end(max_time)
-        low = min(max_time - span, times[end - 1])
-        start = bisect_left(times, low, hi=end)
-        generator = torch.Generator().manual_seed(self._seed + 2**62 + self._frontier_draws)
-        self._frontier_draws += 1
-        pick = start + int(torch.randint(end - start, (1,), generator=generator))
-        return served.batch(self._by_time[pick])
 
     def train_poses(self, max_time: float = 1.0, limit: int = 0) -> list[tuple[Camera, float]]:
         """Camera and time of each training view with t ≤ max_time (the earliest views when
@@ -344,26 +417,25 @@ class DataManager:
             raise ValueError(f"unknown split {split!r}: use train, val or test")
         return len(self._splits[split])
 
-    def state_dict(self) -> dict[str, int]:
-        """Where the training sequence stands; `load_state_dict` continues it exactly."""
-        return {
-            "seed": self._seed,
-            "epoch": self._epoch,
-            "position": self._position,
-            "num_train": self.num_train,
-            "frontier_draws": self._frontier_draws,
-        }
+    def state_dict(self) -> dict[str, object]:
+        """Where the training sequence stands; `load_state_dict` continues it exactly. The
+        first stratum's state at the top level (all of it, with one view per step)."""
+        state: dict[str, object] = {**self.samplers[0].state_dict(), "num_train": self.num_train}
+        if self.batch_views > 1:
+            state["strata"] = [sampler.state_dict() for sampler in self.samplers]
+        return state
 
-    def load_state_dict(self, state: dict[str, int]) -> None:
-        if int(state["num_train"]) != self.num_train:
+    def load_state_dict(self, state: dict[str, object]) -> None:
+        if int(state["num_train"]) != self.num_train:  # type: ignore[call-overload]
             raise ValueError(
                 f"state is for {state['num_train']} train views, this scene has {self.num_train}"
             )
-        position = int(state["position"])
-        if not 0 <= position <= self.num_train or int(state["epoch"]) < 0:
-            raise ValueError(f"invalid datamanager state {state}")
-        self._seed = int(state["seed"])
-        self._epoch = int(state["epoch"])
-        self._position = position
-        self._order = self._permutation(self._epoch)
-        self._frontier_draws = int(state.get("frontier_draws", 0))  # absent before it existed
+        saved = state.get("strata", [state])
+        assert isinstance(saved, list)
+        if len(saved) != self.batch_views:
+            raise ConfigError(
+                f"the checkpoint was trained with --batch-views {len(saved)}, this run has "
+                f"{self.batch_views}"
+            )
+        for sampler, sampler_state in zip(self.samplers, saved, strict=True):
+            sampler.load_state_dict(sampler_state)

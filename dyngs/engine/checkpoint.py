@@ -4,13 +4,18 @@ a broken file behind."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 
+from dyngs.engine import schedules
+from dyngs.engine.optim import build_optimizer
 from dyngs.errors import ConfigError
 from dyngs.io import atomic_write_bytes
 from dyngs.types import SceneBox
+
+if TYPE_CHECKING:  # the trainer calls these with itself
+    from dyngs.engine.trainer import Trainer
 
 
 def save_checkpoint(path: Path, payload: dict[str, Any]) -> None:
@@ -48,3 +53,41 @@ def upgrade_checkpoint(state: dict[str, Any], box: SceneBox, deforming: bool) ->
             "densify": state["densify"],
             "importance_seconds": state.get("importance_seconds", 0.0),
         }
+
+
+def training_state(trainer: Trainer) -> dict[str, Any]:
+    """What a resumed run needs to go on bit for bit: the step, the counters, the model,
+    the optimizer, the lifecycle's statistics, the data order and the random states."""
+    return {
+        "step": trainer.step,
+        "counters": trainer.counters.state_dict(),
+        "model": trainer.model.state_dict(),
+        "optimizer": trainer.optimizer.state_dict(),
+        "lifecycle": trainer.lifecycle.state_dict(),
+        "data": trainer.data.state_dict(),
+        "generator": trainer.generator.get_state(),
+        "torch_rng": torch.get_rng_state(),
+        "planned_steps": trainer.config.steps,
+        "budget": None if trainer.budget is None else trainer.budget.state_dict(),
+    }
+
+
+def restore_training(trainer: Trainer, state: dict[str, Any]) -> None:
+    """Put `training_state`'s `state` back into `trainer`."""
+    trainer.step = int(state["step"])
+    deforming = schedules.deforming(trainer.config, trainer.step)
+    upgrade_checkpoint(state, trainer.model.box, deforming)
+    trainer.model.load_state_dict(state["model"])
+    # The parameters were replaced to fit the checkpoint's Gaussian count: rebuild the
+    # optimizer around them before restoring its moments.
+    trainer.optimizer = build_optimizer(trainer.model, trainer.config.optim, trainer.extent)
+    trainer.optimizer.load_state_dict(state["optimizer"])
+    trainer.lifecycle.load_state_dict(state["lifecycle"])
+    trainer.data.load_state_dict(state["data"])
+    trainer.generator.set_state(state["generator"].cpu())
+    torch.set_rng_state(state["torch_rng"].cpu())
+    trainer.counters.load_state_dict(state["counters"])
+    if trainer.budget is not None and state.get("budget") is not None:
+        trainer.budget.load_state_dict(state["budget"])  # and go on with the plan it had
+        trainer.set_steps(int(state["planned_steps"]))
+    trainer.objective.on_topology()

@@ -164,6 +164,87 @@ def probe_band(state: DensifyState, sh_rest: Tensor, degree: int) -> None:
         grad[:, rows] = 0
 
 
+@dataclass
+class StepStatistics:
+    """What the views of one step add to a `DensifyState`: sums (a process's share, summed
+    over the processes before use) and maxima (their largest)."""
+
+    grad_sum: Float[Tensor, " N"]
+    count: Float[Tensor, " N"]
+    pull: Float[Tensor, "N 3"]
+    pull_norm: Float[Tensor, " N"]
+    max_radius: Float[Tensor, " N"]
+    importance: Float[Tensor, " N"]
+    """+inf where a view did not measure it (never prune by what was not measured)."""
+
+    def sums(self) -> list[Tensor]:
+        return [self.grad_sum, self.count, self.pull, self.pull_norm]
+
+    def maxima(self) -> list[Tensor]:
+        return [self.max_radius, self.importance]
+
+    @staticmethod
+    def zeros(n: int, device: torch.device) -> StepStatistics:
+        """Nothing seen: the identity of `combine` (every statistic is ≥ 0)."""
+        z = torch.zeros(n, device=device)
+        return StepStatistics(z, z.clone(), torch.zeros(n, 3, device=device), z.clone(),
+                              z.clone(), z.clone())  # fmt: skip
+
+    def combine(self, other: StepStatistics) -> StepStatistics:
+        """Both views' statistics: sums added, maxima kept."""
+        summed = [a + b for a, b in zip(self.sums(), other.sums(), strict=True)]
+        largest = [torch.maximum(a, b) for a, b in zip(self.maxima(), other.maxima(), strict=True)]
+        return StepStatistics(*summed, *largest)
+
+
+def view_statistics(
+    out: RenderOutput,
+    width: int,
+    height: int,
+    means_grad: Tensor | None = None,
+    time: float = 0.5,
+    views: int = 1,
+) -> StepStatistics | None:
+    """One view's screen-space gradients, and the canonical means' gradient at its time
+    (call after backward; None when nothing reached the screen). With the loss averaged
+    over `views` views, gradients are scaled back to one view's, as gsplat does for
+    batches, so that `--densify.grad-threshold` keeps its meaning."""
+    grad = out.means2d.grad
+    if grad is None:
+        return None
+    with torch.no_grad():
+        # 3DGS thresholds gradients of NDC coordinates; ours are per pixel.
+        scale = grad.new_tensor([0.5 * width * views, 0.5 * height * views])
+        norm = (grad * scale).norm(dim=-1).to(torch.get_default_dtype())
+        seen = out.visible
+        zeros = torch.zeros_like(norm)
+        radius = out.radii.max(dim=-1).values.to(norm.dtype)
+        if out.contribution is None:
+            # Not measured (not asked for, or the renderer cannot): never prune by it. When
+            # the window's views decide, `measure_importance` replaces it before refining.
+            importance = torch.full_like(norm, math.inf)
+        else:
+            importance = out.contribution.to(norm.dtype)
+        pull = torch.zeros(len(norm), 3, dtype=norm.dtype, device=norm.device)
+        pull_norm = zeros
+        if means_grad is not None:
+            pull = means_grad.to(norm.dtype) * (time - 0.5)
+            pull_norm = pull.norm(dim=-1)
+        return StepStatistics(torch.where(seen, norm, 0), seen.to(norm.dtype), pull, pull_norm,
+                              torch.where(seen, radius, 0), importance)  # fmt: skip
+
+
+def add_statistics(state: DensifyState, stats: StepStatistics) -> None:
+    """Add a step's (all processes') statistics to the state."""
+    with torch.no_grad():
+        state.grad_sum += stats.grad_sum.to(state.grad_sum.dtype)
+        state.count += stats.count.to(state.count.dtype)
+        state.max_radius.copy_(torch.maximum(state.max_radius, stats.max_radius))
+        state.importance.copy_(torch.maximum(state.importance, stats.importance))
+        state.pull += stats.pull.to(state.pull.dtype)
+        state.pull_norm += stats.pull_norm.to(state.pull_norm.dtype)
+
+
 def accumulate(
     state: DensifyState,
     out: RenderOutput,
@@ -174,29 +255,9 @@ def accumulate(
 ) -> None:
     """Add one view's screen-space gradients, and the canonical means' gradient at its
     time (call after backward)."""
-    grad = out.means2d.grad
-    if grad is None:
-        return
-    with torch.no_grad():
-        # 3DGS thresholds gradients of NDC coordinates; ours are per pixel.
-        scale = grad.new_tensor([0.5 * width, 0.5 * height])
-        norm = (grad * scale).norm(dim=-1).to(state.grad_sum.dtype)
-        seen = out.visible
-        state.grad_sum += torch.where(seen, norm, 0)
-        state.count += seen.to(state.count.dtype)
-        radius = out.radii.max(dim=-1).values.to(state.max_radius.dtype)
-        state.max_radius.copy_(torch.maximum(state.max_radius, torch.where(seen, radius, 0)))
-        if out.contribution is None:
-            # Not measured (not asked for, or the renderer cannot): never prune by it. When
-            # the window's views decide, `measure_importance` replaces it before refining.
-            state.importance.fill_(math.inf)
-        else:
-            share = out.contribution.to(state.importance.dtype)
-            state.importance.copy_(torch.maximum(state.importance, share))
-        if means_grad is not None:
-            pull = means_grad.to(state.pull.dtype) * (time - 0.5)
-            state.pull += pull
-            state.pull_norm += pull.norm(dim=-1)
+    stats = view_statistics(out, width, height, means_grad, time)
+    if stats is not None:
+        add_statistics(state, stats)
 
 
 def plan_refinement(

@@ -27,16 +27,18 @@ from rich.console import Console
 from torch import Tensor
 
 from dyngs.config import TrainConfig
-from dyngs.datamanagers.datamanager import DataManager, TrainBatch
+from dyngs.datamanagers.datamanager import DataManager
 from dyngs.engine import schedules
 from dyngs.engine.densify import (
     DensifyState,
-    accumulate,
+    StepStatistics,
+    add_statistics,
     apply_topology,
     plan_refinement,
     probe_band,
     reset_opacity_logits,
 )
+from dyngs.engine.distributed import SINGLE, ProcessGroup
 from dyngs.engine.motion import FixedCameraMotion, model_bytes, revisit, sample_times
 from dyngs.engine.optim import replace_params
 from dyngs.engine.writer import Writer
@@ -54,7 +56,9 @@ class Lifecycle:
     `on_topology` is called after every change of the Gaussian set, so that other owners
     of per-Gaussian data (the rigidity term's neighbourhoods) follow. The renderer and the
     optimizer stay the trainer's (it rebuilds the optimizer on resume): the methods that
-    need them are given them.
+    need them are given them. Under several processes (`group`), every rank holds the same
+    statistics (the trainer sums each step's over the ranks) and so makes the same changes;
+    the importance renders are shared out and their maxima exchanged.
     """
 
     def __init__(
@@ -68,8 +72,10 @@ class Lifecycle:
         extent: float,
         pixel_size: float,
         on_topology: Callable[[], None] = lambda: None,
+        group: ProcessGroup = SINGLE,
     ) -> None:
         self.config = config
+        self.group = group
         self.model = model
         self.data = data
         self.writer = writer
@@ -121,13 +127,12 @@ class Lifecycle:
             return renderer.with_contribution(gaussians, camera, background)
         return renderer(gaussians, camera, background)
 
-    def gather(self, out: RenderOutput, batch: TrainBatch, probe: int | None) -> None:
-        """Add a good step's statistics (call after backward, before the optimizer step)."""
-        canonical = self.model.canonical
+    def gather(self, stats: StepStatistics | None, probe: int | None) -> None:
+        """Add a good step's statistics, of every view of every rank (before Adam steps)."""
         if probe is not None:
-            probe_band(self.state, canonical.sh_rest, probe)
-        size = (batch.camera.width, batch.camera.height)
-        accumulate(self.state, out, *size, canonical.means.grad, batch.time)
+            probe_band(self.state, self.model.canonical.sh_rest, probe)
+        if stats is not None:
+            add_statistics(self.state, stats)
 
     # ------------------------------------------------------------ between steps
 
@@ -199,10 +204,11 @@ class Lifecycle:
         poses = self.data.train_poses(window, cfg.densify.importance_views)
         background = self.data.background
         with torch.no_grad():
-            for camera, t in poses:
+            for camera, t in self.group.share(poses):  # every pose, with one process
                 out = renderer.with_contribution(self.model.at(t), camera, background)
                 assert out.contribution is not None
                 importance = torch.maximum(importance, out.contribution.to(importance.dtype))
+        self.group.max_([importance])
         return importance
 
     # ------------------------------------------------------------ static / dynamic
@@ -212,6 +218,11 @@ class Lifecycle:
         """What the fixed cameras see move (None without any); computed once."""
         fixed = self.data.fixed_cameras
         return None if fixed is None else FixedCameraMotion.of(self.data.scene.train, fixed=fixed)
+
+    def read_every_image(self) -> None:
+        """Read now what needs every training image (fixed cameras' motion): see `Trainer`."""
+        if self.config.motion.separate:
+            _ = self.fixed_motion
 
     def revisit_motion(self, step: int, final: bool = False) -> None:
         """Revisit the static/dynamic split (`dyngs.engine.motion.revisit`)."""

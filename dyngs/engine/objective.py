@@ -125,15 +125,17 @@ class Objective:
         batch: TrainBatch,
         gaussians: Gaussians,
         step: int,
+        other_time: float | None = None,
     ) -> dict[str, Tensor]:
-        """The weighted terms of this step's loss, by name."""
+        """The weighted terms of this view's loss, by name. `other_time`: the rigidity
+        term's random other time, when drawn beforehand (`other_times`)."""
         cfg = self.config
         weights = self.pixel_weights(batch)
         terms = {"photometric": photometric(out.rgb, batch.image, cfg.dssim, weights)}
         if model.deforms:
             terms |= plane_terms(cfg, model.field.planes())
             if cfg.arap > 0:
-                terms["arap"] = cfg.arap * self.rigidity(model, gaussians.means)
+                terms["arap"] = cfg.arap * self.rigidity(model, gaussians.means, other_time)
         for name, term in self.extra.items():
             value = term(TermInputs(out, batch, gaussians, model, step))
             if value.ndim != 0:
@@ -141,8 +143,19 @@ class Objective:
             terms[name] = cfg.extra[name] * value
         return terms
 
-    def rigidity(self, model: DynamicGaussians, means_now: Tensor) -> Tensor:
-        """Neighbour distances of `means_now` against those at a random time (ARAP)."""
+    def other_times(self, model: DynamicGaussians, views: int) -> list[float | None]:
+        """The rigidity term's random other time for each of a step's `views` views, drawn
+        in view order (None when the term is off). Every process draws them all, so that
+        the shared generator stays the same on every rank whichever views it renders."""
+        if not (model.deforms and self.config.arap > 0):
+            return [None] * views
+        return [float(torch.rand((), generator=self.generator)) for _ in range(views)]
+
+    def rigidity(
+        self, model: DynamicGaussians, means_now: Tensor, other: float | None = None
+    ) -> Tensor:
+        """Neighbour distances of `means_now` against those at the time `other` (random
+        when not given) (ARAP)."""
         if self._neighbors is None:
             with torch.no_grad():
                 canonical = model.canonical.means.detach()
@@ -151,7 +164,8 @@ class Objective:
                 weights = neighbor_weights(canonical, neighbors, float(d.mean()) + 1e-12)
             self._neighbors = (neighbors, weights)
         neighbors, weights = self._neighbors
-        other = float(torch.rand((), generator=self.generator))
+        if other is None:
+            other = float(torch.rand((), generator=self.generator))
         with torch.no_grad():
             means_other = model.at(other, sh_degree=0, deform=True).means
         return arap_loss(means_now, means_other, neighbors, weights)

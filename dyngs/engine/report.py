@@ -45,6 +45,12 @@ class Counters:
     bad_streak: int = 0
     """Consecutive skipped steps up to now."""
 
+    def record(self, good: bool) -> int:
+        """Count a step, skipped unless `good`; returns the streak of skipped ones."""
+        self.bad_streak = 0 if good else self.bad_streak + 1
+        self.skipped_steps += 0 if good else 1
+        return self.bad_streak
+
     def state_dict(self) -> dict[str, float | int]:
         return dict(vars(self))
 

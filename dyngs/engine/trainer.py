@@ -9,6 +9,7 @@ happens to the model between steps (`dyngs.engine.lifecycle`), what is reported
 from __future__ import annotations
 
 import dataclasses
+import json
 import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
@@ -21,12 +22,27 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from torch import Tensor
 
 from dyngs.config import TrainConfig
+from dyngs.configio import config_to_dict
 from dyngs.datamanagers.base import SceneData
-from dyngs.datamanagers.datamanager import DataManager, TrainBatch, load_scene
+from dyngs.datamanagers.datamanager import DataManager, load_scene
 from dyngs.engine import schedules
+from dyngs.engine.batch import (
+    ViewResult,
+    backward_view,
+    exchange,
+    step_loss,
+    step_statistics,
+)
 from dyngs.engine.budget import GROWTH, TimeBudget
 from dyngs.engine.capacity import pixel_footprint, resolve_capacity, training_steps_why
-from dyngs.engine.checkpoint import load_checkpoint, save_checkpoint, upgrade_checkpoint
+from dyngs.engine.checkpoint import (
+    load_checkpoint,
+    restore_training,
+    save_checkpoint,
+    training_state,
+)
+from dyngs.engine.densify import view_statistics
+from dyngs.engine.distributed import SINGLE, ProcessGroup, RankLost, check_batch
 from dyngs.engine.evaluate import evaluate
 from dyngs.engine.interrupt import deferred_interrupt
 from dyngs.engine.lifecycle import Lifecycle
@@ -135,12 +151,15 @@ class Trainer:
         console: Console | None = None,
         scene: SceneData | None = None,
         hooks: Sequence[StepHook] = (),
+        group: ProcessGroup = SINGLE,
     ) -> None:
         self.run_dir = run_dir
         self.hooks = list(hooks)
         self.writer = writer
         self.console = console or Console()
-        self.device = resolve_device(config.device)
+        self.group = group
+        check_batch(group.size, config.batch_views)
+        self.device = group.device(resolve_device(config.device))
         torch.manual_seed(config.seed)
         self.generator = torch.Generator().manual_seed(config.seed)
         # The renderer first: a machine that cannot run it should say so before any loading.
@@ -152,7 +171,9 @@ class Trainer:
         if config.time_budget is not None:
             ceiling = config.steps * GROWTH if self.sized_steps else config.steps
             self.budget = TimeBudget(60.0 * config.time_budget, ceiling)
-        self.data = DataManager(self.scene, config.dataset, self.device, self.generator)
+        group.check_same(json.dumps(config_to_dict(config), sort_keys=True), "configs")
+        self.data = DataManager(self.scene, config.dataset, self.device, self.generator,
+                                config.batch_views, (group.rank, group.size))  # fmt: skip
         self.extent = camera_extent(self.scene)
         self.model = initial_model(config, self.scene, self.generator).to(self.device)
         self.optimizer = build_optimizer(self.model, config.optim, self.extent)
@@ -161,8 +182,12 @@ class Trainer:
         )
         self.lifecycle = Lifecycle(
             config, self.model, self.data, writer, self.console, self.generator,
-            self.extent, pixel_footprint(self.scene), self.objective.on_topology,
+            self.extent, pixel_footprint(self.scene), self.objective.on_topology, group,
         )  # fmt: skip
+        if group.distributed:  # what reads every image has: keep only this rank's share
+            self.lifecycle.read_every_image()
+            self.data.release_others()
+            self.scene = self.data.scene
         self.step = 0
         self.counters = Counters()
         # Gaussians the renderer culled for a non-finite parameter, summed over the steps
@@ -176,31 +201,27 @@ class Trainer:
             return self._train_step(step)
 
     def _train_step(self, step: int) -> StepStats:
-        """One iteration: a view, a render, the loss terms, a gradient step, then whatever
+        """One iteration: the step's views (this rank's share), each rendered and its loss
+        sent backward, the gradients summed over the ranks, a gradient step, then whatever
         the lifecycle has due (refinement, motion revisits, SH degree)."""
         cfg, model = self.config, self.model
         set_learning_rates(self.optimizer, *schedules.learning_progress(cfg, step))
         model.deforming = schedules.deforming(cfg, step)
-        batch = self.next_view(step)
-
-        started = time.perf_counter()
+        picks = self.next_views(step)
         probe = self.lifecycle.probe_degree()
-        gaussians = model.at(batch.time, sh_degree=probe)
-        self.counters.deformation_seconds += time.perf_counter() - started if model.deforms else 0
-        out = self.lifecycle.render(self.renderer, gaussians, batch.camera, self.data.background)
-        self.nonfinite_culled += out.num_nonfinite.to(self.nonfinite_culled.device)
-
-        terms = self.objective.terms(model, out, batch, gaussians, step)
-        loss = torch.stack(list(terms.values())).sum()
-        loss.backward()
+        others = self.group.share(self.objective.other_times(model, cfg.batch_views))
+        views = [self._view(step, i, probe, t) for i, t in zip(picks, others, strict=True)]
+        loss = step_loss(views, cfg.batch_views)
         quarantine_nonfinite_gaussians(model.canonical)
+        stats = exchange(self.group, self.optimizer, loss, step_statistics(views),
+                         len(model.canonical))  # fmt: skip
 
         # A step whose loss or gradients are not finite never reaches the parameters, the
         # optimizer's moments or the densification statistics (one host sync per step, as
-        # AMP's GradScaler does).
+        # AMP's GradScaler does). Every rank holds the same sums, so all decide alike.
         good = bool(all_finite(loss, self.optimizer))
         if good:
-            self.lifecycle.gather(out, batch, probe)
+            self.lifecycle.gather(stats, probe)
             self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
         self._count(step, good)
@@ -209,24 +230,42 @@ class Trainer:
         model.deforming = schedules.deforming(cfg, step + 1)
         if good:
             self.lifecycle.after_step(step + 1, self.optimizer, self.renderer)
-        return StepStats(loss.detach(), {k: v.detach() for k, v in terms.items()}, out, batch, good)
+        first = views[0]
+        return StepStats(loss.detach(), first.terms, first.out, first.batch, good)
 
-    def next_view(self, step: int) -> TrainBatch:
-        """The step's training view: from the newest part of the time window on frontier
-        steps, else from anywhere in it."""
+    def _view(self, step: int, index: int, probe: int | None, other: float | None) -> ViewResult:
+        """Training view `index`: drawn, its loss (divided by the step's view count) sent
+        backward, its densification statistics taken."""
+        model, views = self.model, self.config.batch_views
+        batch = self.data.train_batch(index)
+        started = time.perf_counter()
+        gaussians = model.at(batch.time, sh_degree=probe)
+        self.counters.deformation_seconds += time.perf_counter() - started if model.deforms else 0
+        out = self.lifecycle.render(self.renderer, gaussians, batch.camera, self.data.background)
+        self.nonfinite_culled += out.num_nonfinite.to(self.nonfinite_culled.device)
+        terms = self.objective.terms(model, out, batch, gaussians, step, other)
+        loss = torch.stack(list(terms.values())).sum()
+        means_grad = backward_view(loss if views == 1 else loss / views, model.canonical.means)
+        if means_grad is not None:  # as the step's gradient will be (quarantine_nonfinite…)
+            means_grad = means_grad.masked_fill(~model.canonical.finite_rows()[:, None], 0.0)
+        size = (batch.camera.width, batch.camera.height)
+        stats = view_statistics(out, *size, means_grad, batch.time, views)
+        return ViewResult(loss.detach(), {k: v.detach() for k, v in terms.items()}, out, batch,
+                          stats)  # fmt: skip
+
+    def next_views(self, step: int) -> list[int]:
+        """This rank's share of the step's training views (of all of them with one
+        process): from the newest part of the time window on frontier steps, else from
+        anywhere in it. Every rank draws every view, so all stay in step."""
         window = schedules.time_window(self.config, step)
-        if schedules.is_frontier_step(self.config, step):
-            return self.data.next_frontier(window, self.config.frontier_span)
-        return self.data.next_train(max_time=window)
+        span = self.config.frontier_span if schedules.is_frontier_step(self.config, step) else None
+        return self.group.share(self.data.next_views(window, span))
 
     def _count(self, step: int, good: bool) -> None:
         """Count a skipped step; a streak of `--max-bad-steps` stops the run."""
-        counters = self.counters
-        counters.bad_streak = 0 if good else counters.bad_streak + 1
-        counters.skipped_steps += 0 if good else 1
-        if counters.bad_streak >= self.config.max_bad_steps:
+        if (streak := self.counters.record(good)) >= self.config.max_bad_steps:
             raise TrainingDiverged(
-                f"training stopped at step {step}: {counters.bad_streak} consecutive steps had "
+                f"training stopped at step {step}: {streak} consecutive steps had "
                 f"a non-finite loss or gradient; the last good checkpoint is "
                 f"{self.checkpoint_path()}"
             )
@@ -259,6 +298,8 @@ class Trainer:
 
             try:
                 self._loop(show, interrupted)
+            except RankLost as lost:
+                raise lost.stopped(self.step, self.run_dir) from lost
             except KeyboardInterrupt:
                 self.save()
                 self.writer.flush()
@@ -270,7 +311,7 @@ class Trainer:
         self.model.deforming = schedules.deforming(self.config, self.step)
         self.lifecycle.finish(self.step, self.optimizer)
         self.save()
-        return self.evaluate()
+        return self.evaluate() if self.group.is_main else {}
 
     def _loop(self, show: Callable[[str], None], interrupted: Callable[[], bool]) -> None:
         """Steps until `max_iters`: logs, images and checkpoints at their intervals."""
@@ -304,13 +345,15 @@ class Trainer:
         """`--time-budget`: let the budget re-plan the step count from the measured rate."""
         if self.budget is None:
             return
-        planned = self.budget.plan(self.step, self.counters.train_seconds, self.config.steps)
+        budget, seconds = self.budget, self.counters.train_seconds
+        # Rank 0's measured rate decides for every rank: all must plan the same steps.
+        planned = self.group.decide(lambda: budget.plan(self.step, seconds, self.config.steps))
         if planned is not None:
-            self._set_steps(planned)
+            self.set_steps(planned)
             said = self.budget.said(self.step, self.counters.train_seconds, planned)
             self.console.print(said, highlight=False, markup=False)
 
-    def _set_steps(self, steps: int) -> None:
+    def set_steps(self, steps: int) -> None:
         self.config = self.lifecycle.config = dataclasses.replace(self.config, max_iters=steps)
 
     def log(self, stats: StepStats, rate: float) -> str:
@@ -338,37 +381,9 @@ class Trainer:
         return self.run_dir / CHECKPOINT_NAME
 
     def save(self) -> None:
-        save_checkpoint(
-            self.checkpoint_path(),
-            {
-                "step": self.step,
-                "counters": self.counters.state_dict(),
-                "model": self.model.state_dict(),
-                "optimizer": self.optimizer.state_dict(),
-                "lifecycle": self.lifecycle.state_dict(),
-                "data": self.data.state_dict(),
-                "generator": self.generator.get_state(),
-                "torch_rng": torch.get_rng_state(),
-                "planned_steps": self.config.steps,
-                "budget": None if self.budget is None else self.budget.state_dict(),
-            },
-        )
+        """The checkpoint, written by rank 0 alone (every rank holds the same state)."""
+        if self.group.is_main:
+            save_checkpoint(self.checkpoint_path(), training_state(self))
 
     def load(self, path: Path) -> None:
-        state = load_checkpoint(path, self.device)
-        self.step = int(state["step"])
-        upgrade_checkpoint(state, self.model.box, schedules.deforming(self.config, self.step))
-        self.model.load_state_dict(state["model"])
-        # The parameters were replaced to fit the checkpoint's Gaussian count: rebuild the
-        # optimizer around them before restoring its moments.
-        self.optimizer = build_optimizer(self.model, self.config.optim, self.extent)
-        self.optimizer.load_state_dict(state["optimizer"])
-        self.lifecycle.load_state_dict(state["lifecycle"])
-        self.data.load_state_dict(state["data"])
-        self.generator.set_state(state["generator"].cpu())
-        torch.set_rng_state(state["torch_rng"].cpu())
-        self.counters.load_state_dict(state["counters"])
-        if self.budget is not None and state.get("budget") is not None:
-            self.budget.load_state_dict(state["budget"])  # and go on with the plan it had
-            self._set_steps(int(state["planned_steps"]))
-        self.objective.on_topology()
+        restore_training(self, load_checkpoint(path, self.device))

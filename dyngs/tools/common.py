@@ -12,6 +12,7 @@ from typing import Any
 
 import torch
 from rich.console import Console
+from rich.markup import escape
 
 from dyngs.errors import UserError
 
@@ -50,5 +51,8 @@ def run_tool(body: Callable[[Console], object]) -> None:
         except KeyboardInterrupt:
             sys.exit(130)
         except UserError as error:
-            console.print(f"[red]error:[/red] {error}", highlight=False, soft_wrap=True)
+            # escaped: a message may hold brackets (paths, addresses) that are not markup
+            console.print(
+                f"[red]error:[/red] {escape(str(error))}", highlight=False, soft_wrap=True
+            )
             sys.exit(2)

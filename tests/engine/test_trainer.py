@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from dyngs.datamanagers.datamanager import DataConfig, TrainBatch
+from dyngs.datamanagers.datamanager import DataConfig
 from dyngs.engine import schedules
 from dyngs.engine.densify import DensifyConfig
 from dyngs.engine.trainer import Trainer
@@ -88,14 +88,16 @@ def test_frontier_steps_train_on_the_newest_times_of_the_ramp(
     # Training: the frontier steps, and they alone, draw from the newest part of the window.
     times = sorted(set(trainer.data.scene.train.times.tolist()))
     span, draws = trainer.config.frontier_span, []
-    next_frontier = trainer.data.next_frontier
+    next_views = trainer.data.next_views
+    view_times = trainer.data.scene.train.times.tolist()
 
-    def recorded(window: float, span: float) -> TrainBatch:
-        batch = next_frontier(window, span)
-        draws.append((trainer.step, window, batch.time))
-        return batch
+    def recorded(window: float, frontier_span: float | None = None) -> list[int]:
+        picks = next_views(window, frontier_span)
+        if frontier_span is not None:
+            draws.extend((trainer.step, window, view_times[i]) for i in picks)
+        return picks
 
-    monkeypatch.setattr(trainer.data, "next_frontier", recorded)
+    monkeypatch.setattr(trainer.data, "next_views", recorded)
     while trainer.step < 24:
         trainer.train_step(trainer.step)
         trainer.step += 1
