@@ -213,6 +213,14 @@ class DataScale:
     """Pixels of one training image."""
     viewpoints: int
     """Distinct training camera positions."""
+    views: int = 0
+    """Training images (0: unknown, taken as one per timestamp)."""
+
+    @property
+    def views_per_timestamp(self) -> float:
+        """Training images per distinct time: 1 for a monocular sequence, the camera count
+        for a synchronised multi-camera capture."""
+        return max(self.views, self.num_timestamps) / max(self.num_timestamps, 1)
 
 
 @runtime_checkable

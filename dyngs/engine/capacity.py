@@ -52,6 +52,7 @@ def data_scale(scene: SceneData) -> DataScale:
         num_timestamps=scene.num_timestamps,
         image_pixels=camera.width * camera.height,
         viewpoints=distinct_viewpoints(scene),
+        views=len(scene.train.cameras),
     )
 
 

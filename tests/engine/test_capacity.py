@@ -24,7 +24,8 @@ from dyngs.engine.capacity import (
 from dyngs.engine.densify import DensifyConfig, DensifyState, plan_refinement
 from dyngs.engine.trainer import Trainer
 from dyngs.engine.writer import NullWriter
-from dyngs.fields.hexplane import HexPlaneConfig, data_sized_resolution
+from dyngs.fields.hexplane import HexPlaneConfig, data_sized_resolution, time_cells
+from dyngs.types import DataScale, SceneBox
 from tests.engine.helpers import TINY_SCENE, assert_same_state, tiny_config, tiny_trainer
 
 
@@ -38,7 +39,21 @@ def test_finer_images_and_more_timestamps_give_a_finer_grid() -> None:
     rc, rf = (data_sized_resolution(data_scale(s)) for s in (coarse, fine))
     for axis in range(3):  # a cell spans the same number of pixels at both resolutions
         assert abs(rf[axis] - 2 * rc[axis]) <= 1, (rc, rf)
-    assert (rc[3], rf[3]) == (3, 6)  # one cell per two timestamps
+    assert data_scale(coarse).views_per_timestamp == 2  # TINY_SCENE: two cameras per time
+    assert (rc[3], rf[3]) == (2, 4)  # two views of each time: a cell per three timestamps
+
+
+@pytest.mark.parametrize(("views_per_time", "cells"), [(1, 10), (2, 20), (3, 30), (12, 30)])
+def test_time_cells_follow_the_views_of_each_time(views_per_time: int, cells: int) -> None:
+    """A cell per six timestamps seen once (4DGaussians' D-NeRF grids), per two from three
+    views of each time on (its DyNeRF grids), in proportion between."""
+    box = SceneBox(lower=(-1.0, -1.0, -1.0), upper=(1.0, 1.0, 1.0))
+    scale = DataScale(box=box, pixel_size=0.01, num_timestamps=60, image_pixels=10_000,
+                      viewpoints=12, views=60 * views_per_time)  # fmt: skip
+    assert time_cells(scale) == cells
+    assert data_sized_resolution(scale)[3] == cells
+    unknown = dataclasses.replace(scale, views=0)  # counted as one view per time
+    assert time_cells(unknown) == 10
 
 
 def test_the_budget_grows_with_pixels_and_viewpoints() -> None:
