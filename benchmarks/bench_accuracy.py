@@ -2,12 +2,18 @@
 
     python benchmarks/bench_accuracy.py                     # every scene, seed 0
     python benchmarks/bench_accuracy.py --seeds 0 1 2 --only mujoco-collision
+    python benchmarks/bench_accuracy.py --jobs 2 --threads 1 --time-budget 10 \
+        --seeds 0 1 2 --seeded mujoco-collision     # what docs/ACCURACY.md quotes
 
 Scenes: the built-in demo (`--data demo`), lego-tiny (`@configs/lego-tiny.args`), every
 MuJoCo scene in ../shared/data (`@configs/mujoco.args`) and hfu-3cam as it comes (`--data`
-alone). Each run is `dyngs-train hexplane-4dgs <args> --seed S`, one at a time on all of
-`--threads` threads (so train times are those of an otherwise idle machine), with LPIPS
-weights from ../shared/weights when present. Runs already in `--output-dir` are reused.
+alone). Each run is `dyngs-train hexplane-4dgs <args> --seed S` on `--threads` threads, `--jobs`
+runs side by side (`--jobs 2 --threads 1` on two cores: train times are then those of one
+core, an upper bound on an idle two-core machine's), with LPIPS weights from
+../shared/weights when present. Runs already in `--output-dir` are reused. hfu-3cam's
+default schedule (about 21 000 steps at 480×270) takes hours on a CPU, so it is given
+`--time-budget` minutes (`--hfu-minutes`), which the run fits its schedule into;
+`--time-budget M` does the same for every other scene.
 Writes `benchmarks/results/accuracy.json` (every run) and prints a Markdown table of
 test PSNR, SSIM, LPIPS, train time, Gaussians and model size per scene (mean over seeds),
 with the commit and machine, for docs/ACCURACY.md.
@@ -22,6 +28,7 @@ import statistics
 import subprocess
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -33,15 +40,17 @@ DATA = ROOT.parent / "shared" / "data"
 WEIGHTS = ROOT.parent / "shared" / "weights" / "torch-home"
 
 
-def scenes() -> dict[str, list[str]]:
-    """Scene name → its default arguments (those whose data is present)."""
-    found = {"demo": ["--data", "demo"]}
+def scenes(hfu_minutes: float, minutes: float | None) -> dict[str, list[str]]:
+    """Scene name → its default arguments (those whose data is present), with
+    `--time-budget minutes` when given."""
+    budget = [] if minutes is None else ["--time-budget", str(minutes)]
+    found = {"demo": ["--data", "demo", *budget]}
     if (DATA / "lego-tiny").is_dir():
-        found["lego-tiny"] = ["@configs/lego-tiny.args"]
+        found["lego-tiny"] = ["@configs/lego-tiny.args", *budget]
     for folder in sorted(DATA.glob("mujoco-*")):
-        found[folder.name] = ["@configs/mujoco.args", "--data", str(folder)]
+        found[folder.name] = ["@configs/mujoco.args", "--data", str(folder), *budget]
     if (DATA / "hfu-3cam").is_dir():
-        found["hfu-3cam"] = ["--data", str(DATA / "hfu-3cam")]
+        found["hfu-3cam"] = ["--data", str(DATA / "hfu-3cam"), "--time-budget", str(hfu_minutes)]
     return found
 
 
@@ -101,18 +110,38 @@ def main() -> None:
     )
     parser.add_argument("--seeds", type=int, nargs="+", default=[0])
     parser.add_argument("--only", nargs="*", default=None, help="scene names")
-    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument(
+        "--seeded",
+        nargs="*",
+        default=None,
+        help="scenes that run every seed (default: all; others: the first)",
+    )
+    parser.add_argument("--threads", type=int, default=2, help="threads per run")
+    parser.add_argument("--jobs", type=int, default=1, help="runs side by side")
+    parser.add_argument("--hfu-minutes", type=float, default=20.0)
+    parser.add_argument("--time-budget", type=float, default=None,
+                        help="minutes for every other scene (default: none)")  # fmt: skip
     parser.add_argument("--output-dir", type=Path, default=ROOT / "outputs" / "bench-accuracy")
     parser.add_argument("--results", type=Path, default=ROOT / "benchmarks/results/accuracy.json")
     args = parser.parse_args()
     args.output_dir.mkdir(parents=True, exist_ok=True)
-    chosen = {n: a for n, a in scenes().items() if args.only is None or n in args.only}
-    rows = [train(n, a, s, args.output_dir, args.threads) for n, a in chosen.items()
-            for s in args.seeds]  # fmt: skip
+    chosen = {n: a for n, a in scenes(args.hfu_minutes, args.time_budget).items()
+              if args.only is None or n in args.only}  # fmt: skip
+    seeded = set(chosen if args.seeded is None else args.seeded)
+    work = [
+        (n, a, s)
+        for n, a in chosen.items()
+        for s in args.seeds
+        if s == args.seeds[0] or n in seeded
+    ]
+    with ThreadPoolExecutor(args.jobs) as pool:
+        rows = list(pool.map(lambda job: train(*job, args.output_dir, args.threads), work))
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT,
                             capture_output=True, text=True).stdout.strip()  # fmt: skip
     args.results.parent.mkdir(parents=True, exist_ok=True)
-    summary = {"commit": commit, "machine": machine_info(), "threads": args.threads, "runs": rows}
+    summary = {"commit": commit, "machine": machine_info(), "threads": args.threads,
+               "jobs": args.jobs, "time_budget": args.time_budget,
+               "hfu_minutes": args.hfu_minutes, "runs": rows}  # fmt: skip
     args.results.write_text(json.dumps(summary, indent=1) + "\n")
     print(f"\ncommit {commit}, {machine_info()}\n")
     print(table(rows))
