@@ -21,15 +21,11 @@ import tyro
 from rich.console import Console
 
 from dyngs.errors import ConfigError
-from dyngs.renderers import RENDERERS, default_renderer, renderer_name
+from dyngs.renderers import RENDERERS, CudaTileConfig, default_renderer, renderer_name
 from dyngs.runs import LoadedRun, RunOverrides, load_run
 from dyngs.tools.common import run_tool
+from dyngs.viewer.frames import fastest_renderer
 from dyngs.viewer.options import ViewerOptions
-
-
-def fastest_renderer() -> str:
-    """The registered name of the fastest renderer this machine runs."""
-    return renderer_name(default_renderer())
 
 
 @dataclass(frozen=True)
@@ -55,10 +51,12 @@ class ViewConfig:
 
 def load_for_viewing(config: ViewConfig) -> LoadedRun:
     """The run, with the renderer and device the viewer draws with."""
-    name = fastest_renderer() if config.renderer == "fastest" else config.renderer
-    device = config.device
-    if device is None and name != "run":
-        device = "cuda" if name == "cuda-tile" else "cpu"
+    if config.renderer != "fastest":
+        overrides = RunOverrides(device=config.device, renderer=config.renderer)
+        return load_run(config.load_dir, overrides=overrides)
+    fastest = default_renderer()  # cuda-tile where it runs, and then the model goes there
+    device = config.device or ("cuda" if isinstance(fastest, CudaTileConfig) else "cpu")
+    name = renderer_name(fastest_renderer(device))
     return load_run(config.load_dir, overrides=RunOverrides(device=device, renderer=name))
 
 

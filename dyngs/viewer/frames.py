@@ -20,6 +20,13 @@ from torch import Tensor
 from dyngs.engine.motion import model_bytes
 from dyngs.engine.writer import to_uint8
 from dyngs.model import DynamicGaussians
+from dyngs.renderers import (
+    CpuReferenceConfig,
+    CpuTileConfig,
+    RendererSpec,
+    cpu_tile_available,
+    default_renderer,
+)
 from dyngs.renderers.base import Renderer
 from dyngs.types import Camera, Gaussians
 
@@ -30,6 +37,14 @@ DYNAMIC_COLOR = (1.00, 0.45, 0.10)
 DEPTH_PERCENTILES = (2.0, 98.0)
 """Depth is shown from the near to the far end of these percentiles of the drawn pixels,
 so that a few stray Gaussians do not flatten the colour ramp."""
+
+
+def fastest_renderer(device: torch.device | str) -> RendererSpec:
+    """The fastest renderer for a model on `device`: cuda-tile on a GPU where gsplat is
+    installed, else cpu-tile (compiled), else cpu-reference."""
+    if torch.device(device).type == "cuda":
+        return default_renderer()
+    return CpuTileConfig() if cpu_tile_available() else CpuReferenceConfig()
 
 
 @dataclass(frozen=True)

@@ -136,14 +136,27 @@ class Viewer:
         if self.server is not None:
             self.server.stop()
 
-    def show(self, model: DynamicGaussians, note: str = "") -> None:
-        """Draw `model` from now on (`note`: a line shown under its summary)."""
+    def show(
+        self, model: DynamicGaussians, note: str = "", unless_ended: TrainingLink | None = None
+    ) -> None:
+        """Draw `model` from now on (`note`: a line shown under its summary). A snapshot
+        from `unless_ended` is dropped if training ended while it was being rebuilt."""
         with self._model_lock:
+            if unless_ended is not None and self.link is not unless_ended:
+                return
             self._model = model
             self._model_version += 1
             self._model_note = note
         self._show_summary()
         self._wake.set()
+
+    def training_ended(self, model: DynamicGaussians, note: str) -> None:
+        """Show the final `model` from now on, and take the training controls away."""
+        with self._model_lock:
+            self.link = None
+        if self.controls is not None and self.controls.training is not None:
+            self.controls.training.visible = False
+        self.show(model, note)
 
     def _show_summary(self) -> None:
         with self._model_lock:
@@ -225,10 +238,12 @@ class Viewer:
             link.request()
             self._asked_at = now
         snapshot = link.take()
-        if snapshot is not None:
-            paused = "  · paused" if link.paused else ""
-            note = f"step {snapshot.step:,} of {snapshot.steps:,}{paused}  \n{link.hook_summary()}"
-            self.show(snapshot.model(), note)
+        if snapshot is None:
+            return
+        model = snapshot.model()
+        paused = "  · paused" if link.paused else ""
+        note = f"step {snapshot.step:,} of {snapshot.steps:,}{paused}  \n{link.hook_summary()}"
+        self.show(model, note, unless_ended=link)
 
     def _serve(self, client: viser.ClientHandle, view: ViewState) -> bool:
         """Send `client` a new frame if its view changed, or the full-size frame once it

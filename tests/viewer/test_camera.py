@@ -29,8 +29,7 @@ def _random_rotations(count: int) -> list[np.ndarray]:
         q = q * np.sign(np.diag(r))
         rotations.append(q if np.linalg.det(q) > 0 else -q)
     # The branches of the quaternion extraction: half turns about each axis, identity.
-    rotations += [np.diag([1.0, -1, -1]), np.diag([-1.0, 1, -1]), np.diag([-1.0, -1, 1]),
-                  np.eye(3)]  # fmt: skip
+    rotations += [np.diag([1.0, -1, -1]), np.diag([-1.0, 1, -1]), np.diag([-1.0, -1, 1]), np.eye(3)]
     return rotations
 
 
@@ -51,8 +50,17 @@ def test_quaternion_of_a_quarter_turn_about_z() -> None:
 def _camera(width: int = 64, height: int = 48) -> Camera:
     w2c = look_at(np.array([3.0, -2.0, 1.5]), np.zeros(3), np.array([0.0, 0.0, 1.0]))
     focal = 0.5 * height / math.tan(math.radians(25))
-    return Camera(focal, focal, width / 2, height / 2, torch.from_numpy(w2c), width, height,
-                  near=0.05, far=50.0)  # fmt: skip
+    return Camera(
+        focal,
+        focal,
+        width / 2,
+        height / 2,
+        torch.from_numpy(w2c),
+        width,
+        height,
+        near=0.05,
+        far=50.0,
+    )
 
 
 def test_a_camera_comes_back_from_its_browser_pose() -> None:
@@ -85,7 +93,8 @@ def test_the_browser_pose_is_opencv() -> None:
     assert look_distance(behind, 2 * pose.position) == pytest.approx(1e-3)
 
 
-@pytest.mark.parametrize(("aspect", "side", "size"),
-                         [(4 / 3, 800, (800, 600)), (0.5, 400, (200, 400)), (1.0, 7, (7, 7))])  # fmt: skip
+@pytest.mark.parametrize(
+    ("aspect", "side", "size"), [(4 / 3, 800, (800, 600)), (0.5, 400, (200, 400)), (1.0, 7, (7, 7))]
+)
 def test_frame_size_keeps_the_aspect(aspect: float, side: int, size: tuple[int, int]) -> None:
     assert frame_size(aspect, side) == size
