@@ -20,13 +20,13 @@ class ViewerOptions:
     """Where the page is served and how frames are drawn."""
 
     host: str = "localhost"
-    """Address to serve on: `localhost` keeps the viewer on this machine; `0.0.0.0`
-    serves every network the machine is on."""
+    """Address to serve on: `localhost` keeps the viewer on this machine.
+    `0.0.0.0` serves it to every network the machine is on."""
     port: int = 8080
     """Port to serve on (0: any free port; the URL printed says which)."""
     max_side: int = 800
-    """Long side, in pixels, of the frame drawn once the view stops moving (at most the
-    browser's canvas)."""
+    """Long side, in pixels, of the frame drawn once the view stops moving.
+    (At most the browser's canvas; smaller frames are drawn while it moves.)"""
     target_fps: float = 12.0
     """Frame rate the adaptive resolution aims at while the view moves or time plays."""
     jpeg_quality: int = 90
