@@ -15,6 +15,7 @@ import io
 import math
 import threading
 import time
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -67,6 +68,38 @@ def pose_key(camera: viser.CameraHandle) -> tuple:
             camera.image_width, camera.image_height)  # fmt: skip
 
 
+def orbit_centre(pose: BrowserPose, scene: SceneInfo) -> np.ndarray:
+    """The point the mouse turns the camera around: on its view axis, nearest the scene
+    box's centre."""
+    forward = quaternion_to_matrix(pose.wxyz)[:, 2]
+    centre = np.asarray(scene.scene_box.center, dtype=np.float64)
+    return pose.position + forward * look_distance(pose, centre)
+
+
+def place_initially(server: viser.ViserServer, scene: SceneInfo) -> None:
+    """New browsers start at the first training view; the orbit turns around the scene's
+    up direction (the training cameras' mean, as dyngs-render's spiral)."""
+    ups = [-c.rotation[1].double().cpu().numpy() for c in scene.train.cameras]
+    up = world_up(np.mean(ups, axis=0))
+    server.scene.set_up_direction(up)
+    pose = pose_of(scene.train.cameras[0])
+    server.initial_camera.up = up
+    server.initial_camera.position = pose.position
+    server.initial_camera.look_at = orbit_centre(pose, scene)
+    server.initial_camera.fov = pose.fov_y
+
+
+def place(client: viser.ClientHandle, camera: Camera, scene: SceneInfo) -> None:
+    """Put the client's camera exactly where `camera` is: the last assignment, of the
+    quaternion, fixes the roll the up direction left."""
+    pose = pose_of(camera)
+    with client.atomic():
+        client.camera.position = pose.position
+        client.camera.look_at = orbit_centre(pose, scene)
+        client.camera.wxyz = pose.wxyz
+        client.camera.fov = pose.fov_y
+
+
 class Viewer:
     """The web viewer of one scene; show a model with `show` (any time, any thread)."""
 
@@ -95,6 +128,7 @@ class Viewer:
         self._rate_shown_at = 0.0
         self._last_sent = 0.0
         self._last_size = "none yet"
+        self._failure = ""
         self._asked_at = -math.inf
         self.server: viser.ViserServer | None = None
         self.controls: Controls | None = None
@@ -112,7 +146,7 @@ class Viewer:
             server.stop()
             raise port_taken(host, port)
         self.server = server
-        self._place_initial_camera(server)
+        place_initially(server, self.scene)
         state = ViewState()
         self.controls = Controls(server, self.scene, state, self._wake.set, self._jump, self.link)
         self._show_summary()
@@ -166,34 +200,8 @@ class Viewer:
 
     # ------------------------------------------------------------------ cameras
 
-    def _place_initial_camera(self, server: viser.ViserServer) -> None:
-        """New browsers start at the first training view; the orbit turns around the
-        scene's up direction (the training cameras' mean) through the box centre."""
-        ups = [-c.rotation[1].double().cpu().numpy() for c in self.scene.train.cameras]
-        up = world_up(np.mean(ups, axis=0))
-        server.scene.set_up_direction(up)
-        pose = pose_of(self.scene.train.cameras[0])
-        server.initial_camera.up = up
-        server.initial_camera.position = pose.position
-        server.initial_camera.look_at = pose.position + self._forward(pose) * self._distance(pose)
-        server.initial_camera.fov = pose.fov_y
-
-    def _distance(self, pose: BrowserPose) -> float:
-        return look_distance(pose, np.asarray(self.scene.scene_box.center, dtype=np.float64))
-
-    @staticmethod
-    def _forward(pose: BrowserPose) -> np.ndarray:
-        return quaternion_to_matrix(pose.wxyz)[:, 2]
-
     def _place(self, client: viser.ClientHandle, camera: Camera) -> None:
-        """Put the client's camera exactly where `camera` is (orientation included: the
-        last assignment, of the quaternion, fixes the roll the up direction left)."""
-        pose = pose_of(camera)
-        with client.atomic():
-            client.camera.position = pose.position
-            client.camera.look_at = pose.position + self._forward(pose) * self._distance(pose)
-            client.camera.wxyz = pose.wxyz
-            client.camera.fov = pose.fov_y
+        place(client, camera, self.scene)
         self._wake.set()
 
     def _jump(self, client: viser.ClientHandle | None, camera: Camera) -> None:
@@ -220,13 +228,26 @@ class Viewer:
                 self.controls.advance(now - last)
                 view = self.controls.snapshot()
             last = now
-            self._refresh_model()
-            pending = False
-            for client in list(self.server.get_clients().values()):
-                pending |= self._serve(client, view)
-            self._show_rate(view.playing)
+            try:
+                self._refresh_model()
+                pending = False
+                for client in list(self.server.get_clients().values()):
+                    pending |= self._serve(client, view)
+                self._show_rate(view.playing)
+            except Exception as error:  # a frame that fails must not end the page (or training)
+                self._report(error)
+                pending = False
             if not view.playing:
                 self._wake.wait(SETTLE_SECONDS / 4 if pending else IDLE_WAIT_SECONDS)
+
+    def _report(self, error: Exception) -> None:
+        """Say once, on the terminal and on the page, that frames fail, and why."""
+        said = f"viewer: drawing failed ({type(error).__name__}: {error})"
+        if said != self._failure:
+            self._failure = said
+            warnings.warn(said, stacklevel=1)
+            if self.controls is not None:
+                self.controls.rate.content = said
 
     def _refresh_model(self) -> None:
         """During training: ask for a snapshot now and then, and show the one that came."""
