@@ -93,14 +93,20 @@ class Controls:
         @button.on_click
         def _(_: Any) -> None:
             assert self.link is not None
-            if self.link.paused:
-                self.link.resume()
-                button.label, button.icon = "Pause training", viser.Icon.PLAYER_PAUSE
-            else:
-                self.link.pause()
-                button.label, button.icon = "Resume training", viser.Icon.PLAYER_PLAY
+            self.set_paused(not self.link.paused)
 
         return button
+
+    def set_paused(self, paused: bool) -> None:
+        """Pause or resume training, and say which on the button."""
+        if self.link is None or self.training is None:
+            return
+        if paused:
+            self.link.pause()
+            self.training.label, self.training.icon = "Resume training", viser.Icon.PLAYER_PLAY
+        else:
+            self.link.resume()
+            self.training.label, self.training.icon = "Pause training", viser.Icon.PLAYER_PAUSE
 
     def _wire(self, jump: Callable[[viser.ClientHandle | None, Camera], None]) -> None:
         @self.time.on_update

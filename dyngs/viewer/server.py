@@ -151,6 +151,7 @@ class Viewer:
         self.controls = Controls(server, self.scene, state, self._wake.set, self._jump, self.link)
         self._show_summary()
         server.on_client_connect(self._on_connect)
+        server.on_client_disconnect(self._on_disconnect)
         self._thread = threading.Thread(target=self._loop, name="dyngs-viewer", daemon=True)
         self._thread.start()
         return self.url
@@ -213,6 +214,13 @@ class Viewer:
     def _on_connect(self, client: viser.ClientHandle) -> None:
         client.camera.on_update(lambda _: self._wake.set())
         self._place(client, self.scene.train.cameras[0])
+
+    def _on_disconnect(self, client: viser.ClientHandle) -> None:
+        """The last page closing resumes a paused training: no one is left to resume it."""
+        assert self.server is not None
+        self.frames.pop(client.client_id, None)
+        if self.controls is not None and not self.server.get_clients():
+            self.controls.set_paused(False)
 
     # -------------------------------------------------------------- render thread
 
