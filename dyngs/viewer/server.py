@@ -237,9 +237,11 @@ class Viewer:
                 view = self.controls.snapshot()
             last = now
             try:
-                self._refresh_model()
+                clients = list(self.server.get_clients().values())
+                if clients:  # no page open: no snapshot, training is left alone
+                    self._refresh_model()
                 pending = False
-                for client in list(self.server.get_clients().values()):
+                for client in clients:
                     pending |= self._serve(client, view)
                 self._show_rate(view.playing)
             except Exception as error:  # a frame that fails must not end the page (or training)

@@ -160,19 +160,8 @@ def _wait(condition: Callable[[], bool], what: str) -> None:
         time.sleep(0.01)
 
 
-@pytest.mark.slow
-def test_the_hook_snapshots_on_request_and_holds_training_while_paused(tmp_path: Path) -> None:
-    link = TrainingLink()
-    trainer = tiny_trainer(tmp_path, max_iters=3)
-    trainer.hooks.append(link)
-    link.pause()
-    link.request()
-    training = threading.Thread(target=trainer.train)
-    training.start()
-    _wait(lambda: link.step == 1, "the hook never ran")
-    first = link.take()
-    assert first is not None and first.step == 1
-    link.request()  # served while paused, at the same step
+def _taken(link: TrainingLink) -> Snapshot:
+    """The snapshot the training thread will hand over (waited for, generous limit)."""
     taken: list[Snapshot] = []
 
     def took() -> bool:
@@ -180,10 +169,28 @@ def test_the_hook_snapshots_on_request_and_holds_training_while_paused(tmp_path:
         taken.extend([snapshot] if snapshot is not None else [])
         return bool(taken)
 
-    _wait(took, "no snapshot while paused")
-    assert taken[0].step == 1 and trainer.step == 1 and training.is_alive()
-    link.resume()
-    training.join()
+    _wait(took, "no snapshot came")
+    return taken[0]
+
+
+@pytest.mark.slow
+def test_the_hook_snapshots_on_request_and_holds_training_while_paused(tmp_path: Path) -> None:
+    link = TrainingLink()
+    trainer = tiny_trainer(tmp_path, max_iters=3)
+    trainer.hooks.append(link)
+    link.pause()
+    link.request()
+    training = threading.Thread(target=trainer.train, daemon=True)
+    training.start()
+    try:
+        first = _taken(link)
+        assert first.step == 1
+        link.request()  # served while paused, at the same step
+        again = _taken(link)
+        assert again.step == 1 and trainer.step == 1 and training.is_alive()
+    finally:  # a failed assertion must not leave training paused
+        link.resume()
+        training.join()
     assert trainer.step == 3
     # The snapshot is a copy: training went on without changing it.
     model = first.model()
