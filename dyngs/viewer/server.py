@@ -40,8 +40,9 @@ from dyngs.viewer.options import ViewerOptions, check_port, port_taken
 from dyngs.viewer.resolution import SETTLE_SECONDS, AdaptiveResolution
 from dyngs.viewer.training import TrainingLink
 
-SNAPSHOT_SECONDS = 0.5
-"""During training, the viewer asks for a new model at most this often."""
+SNAPSHOT_SECONDS = 1.0
+"""During training, the viewer asks for a new model at most this often (each is drawn:
+the page's frames share the CPU with training)."""
 IDLE_WAIT_SECONDS = 0.5
 """With nothing to draw, the render thread still wakes this often (snapshots, settling)."""
 RATE_EVERY_SECONDS = 0.5
@@ -250,6 +251,11 @@ class Viewer:
             if not view.playing:
                 self._wake.wait(SETTLE_SECONDS / 4 if pending else IDLE_WAIT_SECONDS)
 
+    def _training(self) -> bool:
+        """Whether a training run is feeding the page (and not paused)."""
+        link = self.link
+        return link is not None and not link.paused
+
     def _report(self, error: Exception) -> None:
         """Say once, on the terminal and on the page, that frames fail, and why."""
         said = f"viewer: drawing failed ({type(error).__name__}: {error})"
@@ -288,8 +294,10 @@ class Viewer:
             return False
         key = (pose_key(camera), view.time, view.look, version)
         last = self.frames.get(client.client_id)
-        moving = view.playing or time.time() - max(camera.update_timestamp, view.changed_at) < (
-            SETTLE_SECONDS
+        moving = (
+            view.playing
+            or time.time() - max(camera.update_timestamp, view.changed_at) < SETTLE_SECONDS
+            or self._training()  # a new model every second: small frames, training's CPU
         )
         if last is not None and last.key == key and (last.refined or moving):
             return not last.refined
