@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 import torch
 import tyro
-from jaxtyping import Float
+from jaxtyping import Float, UInt8
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
@@ -202,6 +202,13 @@ def camera_path(run: LoadedRun, config: RenderConfig) -> list[tuple[Camera, floa
 
 
 @torch.no_grad()
+def render_frame(run: LoadedRun, camera: Camera, t: float) -> UInt8[np.ndarray, "H W 3"]:
+    """One frame of the video: the run's model at time t through `camera`, 8-bit RGB."""
+    background = run.scene.background.to(run.device, torch.float32)
+    return to_uint8(run.renderer(run.model.at(t), camera.to(run.device), background).rgb)
+
+
+@torch.no_grad()
 def run_render(config: RenderConfig, console: Console | None = None) -> Path:
     """Render the video; returns its path."""
     console = console or Console()
@@ -233,7 +240,6 @@ def run_render(config: RenderConfig, console: Console | None = None) -> Path:
     )
     if not writer.isOpened():
         raise UserError(f"{output}: OpenCV cannot write an mp4v video here")
-    background = run.scene.background.to(run.device, torch.float32)
     columns = (
         TextColumn(f"[bold]render {config.trajectory}"),
         BarColumn(),
@@ -244,9 +250,7 @@ def run_render(config: RenderConfig, console: Console | None = None) -> Path:
         with Progress(*columns, console=console) as progress:
             task = progress.add_task("render", total=len(frames))
             for camera, t in frames:
-                gaussians = run.model.at(t)
-                rgb = run.renderer(gaussians, camera, background).rgb
-                writer.write(cv2.cvtColor(to_uint8(rgb), cv2.COLOR_RGB2BGR))
+                writer.write(cv2.cvtColor(render_frame(run, camera, t), cv2.COLOR_RGB2BGR))
                 progress.advance(task)
     finally:
         writer.release()

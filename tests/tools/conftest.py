@@ -1,17 +1,22 @@
-"""One tiny trained run (three steps on the tiny built-in scene) that the eval, render
-and export tests share; the bench tests train their own. And `load_benchmark`, for the
-tests of the scripts in benchmarks/."""
+"""One tiny trained run (three steps on the tiny built-in scene) that the eval, render,
+export and view tests share (and `fading_run`, a copy whose picture changes with time);
+the bench tests train their own. And `load_benchmark`, for the tests of the scripts in
+benchmarks/."""
 
 from __future__ import annotations
 
 import importlib.util
+import math
+import shutil
 from pathlib import Path
 from types import ModuleType
 
 import pytest
+import torch
 
 from dyngs.cli import main
 from dyngs.datamanagers.procedural import demo_path
+from dyngs.engine.checkpoint import load_checkpoint, save_checkpoint
 from tests.engine.helpers import TINY_SCENE
 
 TINY_FLAGS = (
@@ -45,3 +50,30 @@ def tiny_run(tmp_path_factory: pytest.TempPathFactory, tiny_data: Path) -> Path:
          "--output-dir", str(out), "--run-name", "run", "--max-iters", "3", *TINY_FLAGS]
     )  # fmt: skip
     return out / "run"
+
+
+LIFETIME_SIGMA = 0.2
+"""Time scale of the lifetimes `fading_run` gives: at t = 1 those Gaussians are drawn at
+exp(−12.5) of their opacity."""
+
+
+@pytest.fixture(scope="session")
+def fading_run(tmp_path_factory: pytest.TempPathFactory, tiny_run: Path) -> Path:
+    """The tiny run, with half of its Gaussians (left of the median x) living around t = 0
+    and marked dynamic, for the viewer's tests. Three steps leave the deformation at zero
+    and no Gaussian temporal, so every time would draw the same frame; edited through the
+    checkpoint the viewer loads, moving the time slider must change the picture, and
+    static/dynamic colouring has both colours to show."""
+    run = tmp_path_factory.mktemp("viewer") / "fading"
+    shutil.copytree(tiny_run, run)
+    checkpoint = load_checkpoint(run / "checkpoint.pt")
+    model = checkpoint["model"]
+    x = model["canonical.means"][:, 0]
+    fading = x < x.median()
+    model["canonical.time_centers"] = torch.where(fading, 0.0, 0.5)
+    model["canonical.time_log_scales"] = torch.where(
+        fading, math.log(LIFETIME_SIGMA), model["canonical.time_log_scales"]
+    )
+    model["dynamic"] = fading.clone()
+    save_checkpoint(run / "checkpoint.pt", checkpoint)
+    return run
