@@ -87,7 +87,8 @@ def test_frontier_steps_train_on_the_newest_times_of_the_ramp(
     assert frontier == list(range(3, 22, 2))
     # Training: the frontier steps, and they alone, draw from the newest part of the window.
     times = sorted(set(trainer.data.scene.train.times.tolist()))
-    span, draws = trainer.config.frontier_span, []
+    span = trainer.config.frontier_span
+    draws: list[tuple[int, float, float]] = []
     next_views = trainer.data.next_views
     view_times = trainer.data.scene.train.times.tolist()
 
