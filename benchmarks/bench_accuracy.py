@@ -34,7 +34,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from dyngs.tools.common import machine_info  # noqa: E402
+from dyngs.tools.common import machine_info, source_commit  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data"
 WEIGHTS = ROOT.parent / "shared" / "weights" / "torch-home"
@@ -136,8 +136,7 @@ def main() -> None:
     ]
     with ThreadPoolExecutor(args.jobs) as pool:
         rows = list(pool.map(lambda job: train(*job, args.output_dir, args.threads), work))
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT,
-                            capture_output=True, text=True).stdout.strip()  # fmt: skip
+    commit = source_commit(ROOT)
     args.results.parent.mkdir(parents=True, exist_ok=True)
     summary = {"commit": commit, "machine": machine_info(), "threads": args.threads,
                "jobs": args.jobs, "time_budget": args.time_budget,

@@ -26,7 +26,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from dyngs.tools.common import machine_info  # noqa: E402
+from dyngs.tools.common import machine_info, source_commit  # noqa: E402
 
 # Each rank runs dyngs-train and, at exit, writes its peak RSS beside the run.
 RANK_MAIN = """
@@ -103,8 +103,7 @@ def main() -> None:
                 for k in range(processes)
             ],
         }
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
-                            text=True, cwd=ROOT).stdout.strip()  # fmt: skip
+    commit = source_commit(ROOT)
     result = {
         "command": "python " + " ".join(sys.argv),
         "train_command": f"dyngs-train hexplane-4dgs --data {options.data} --max-iters "

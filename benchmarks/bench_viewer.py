@@ -26,7 +26,6 @@ import json
 import math
 import os
 import statistics
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -39,7 +38,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from dyngs.tools.common import machine_info  # noqa: E402
+from dyngs.tools.common import machine_info, source_commit  # noqa: E402
 from dyngs.tools.view import ViewConfig, load_for_viewing  # noqa: E402
 from dyngs.viewer.camera import (  # noqa: E402
     BrowserPose,
@@ -151,8 +150,7 @@ def main() -> None:
     parser.add_argument("--target-fps", type=float, default=12.0, help="as dyngs-view's")
     parser.add_argument("--output", type=Path, help="default: results/viewer-<run>.json")
     args = parser.parse_args()
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT,
-                            capture_output=True, text=True).stdout.strip()  # fmt: skip
+    commit = source_commit(ROOT)
     result = {
         "command": " ".join(["python", *sys.argv]),
         "commit": commit,

@@ -29,7 +29,7 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from dyngs.tools.common import machine_info  # noqa: E402
+from dyngs.tools.common import machine_info, source_commit  # noqa: E402
 from tests.tools.test_view_browser import CHROMIUM, CHROMIUM_FLAGS  # noqa: E402
 
 HOOK_LINE = re.compile(r"snapshot ([0-9.]+) ms \(longest ([0-9.]+) ms\)")
@@ -110,9 +110,7 @@ def main() -> None:
         for viewer in (False, True):
             runs.append(train(args.max_iters, viewer))
             print(runs[-1], flush=True)
-    commit = subprocess.run(
-        ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True
-    ).stdout.strip()
+    commit = source_commit(ROOT)
     summary = {
         mode: statistics.median(r["train_seconds"] for r in runs if r["viewer"] == (mode == "with"))
         for mode in ("without", "with")

@@ -13,10 +13,21 @@ with THREADS in its environment, and writes OUT.json ({"forward_s": [...], "tota
 
 from __future__ import annotations
 
+import argparse
 import json
 from pathlib import Path
 
 import numpy as np
+
+
+def adapter_args() -> argparse.Namespace:
+    """An adapter's command line, as above: scene, out, --repeats, --backward."""
+    parser = argparse.ArgumentParser()
+    parser.add_argument("scene")
+    parser.add_argument("out")
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--backward", action="store_true")
+    return parser.parse_args()
 
 
 def load(path: str) -> dict[str, np.ndarray]:

@@ -10,7 +10,6 @@ pip install jax jaxlib warp-lang && pip install --no-deps splax.
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 import time
@@ -30,12 +29,7 @@ import scene as scene_file  # noqa: E402
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser()
-    parser.add_argument("scene")
-    parser.add_argument("out")
-    parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--backward", action="store_true")
-    args = parser.parse_args()
+    args = scene_file.adapter_args()
 
     from importlib.metadata import version
 

@@ -1,13 +1,15 @@
-"""What every dyngs-* tool shares: the one-line error wrapper, and the machine a
-benchmark ran on. Run folders are loaded by `dyngs.runs.load_run`."""
+"""What every dyngs-* tool shares: the one-line error wrapper, and the machine and commit
+a benchmark ran on. Run folders are loaded by `dyngs.runs.load_run`."""
 
 from __future__ import annotations
 
 import platform
+import subprocess
 import sys
 import warnings
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -27,6 +29,14 @@ def machine_info(threads: int | None = None) -> dict[str, Any]:
         "torch": torch.__version__,
         "threads": threads or torch.get_num_threads(),
     }
+
+
+def source_commit(root: Path) -> str:
+    """The short hash of the commit checked out at `root`, for a results file ("" where
+    `root` is not a git checkout)."""
+    done = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root,
+                          capture_output=True, text=True)  # fmt: skip
+    return done.stdout.strip()
 
 
 @contextmanager
