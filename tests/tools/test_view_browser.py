@@ -181,7 +181,10 @@ def test_play_runs_time_and_reports_the_frame_rate(viewer: Viewer, page: Any) ->
     wait_for(lambda: page.get_by_text("frames/s").count() > 0,
              lambda: "no frame rate on the page")  # fmt: skip
     page.get_by_role("button", name="Pause").click()
-    assert not viewer.controls.state.playing if viewer.controls else False
+    # The click reaches the server over the page's websocket, after click() returns.
+    assert viewer.controls is not None
+    controls = viewer.controls
+    wait_for(lambda: not controls.state.playing, lambda: "still playing after Pause")
 
 
 def test_static_dynamic_colours_reach_the_page(viewer: Viewer, page: Any) -> None:
