@@ -226,65 +226,72 @@ def _backward_one(
     upstream: np.ndarray,
     grads: np.ndarray,
 ) -> None:  # pragma: no cover - compiled
-    """Gaussian i of `project_backward`."""
+    """Gaussian i of `project_backward`: the forward recomputed, then the chain rule back
+    through the conic and opacity, the 2D covariance, the camera point and the rotation."""
     means, quats, scales, opacities, finite = scene
     rot, trans, intrinsics, limits = view
-    fx, fy = intrinsics[0], intrinsics[1]
-    limx, limy = intrinsics[4], intrinsics[5]
     near, far, eps2d, quat_eps = limits[0], limits[1], limits[2], limits[4]
     for k in range(GRAD_COLUMNS):
         grads[i, k] = 0.0
     if not finite[i]:
         return
-    good = valid[i]
     px, py, pz = _camera_point(means, i, True, rot, trans)
     in_depth = pz > near and pz < far
     z = pz if in_depth else 1.0
-    qw, qx, qy, qz, norm, n, big, r = _rotation(
-        quats[i, 0], quats[i, 1], quats[i, 2], quats[i, 3], quat_eps
-    )
-    s0, s1, s2, o = scales[i, 0], scales[i, 1], scales[i, 2], opacities[i]
-    m, sig = _covariance(r, s0, s1, s2)
+    rotation = _rotation(quats[i, 0], quats[i, 1], quats[i, 2], quats[i, 3], quat_eps)
+    s = (scales[i, 0], scales[i, 1], scales[i, 2])
+    m, sig = _covariance(rotation[7], s[0], s[1], s[2])
     t, tx, ty = _jacobian_rows(px, py, z, intrinsics, rot)
-    a, b, c = _project_2d(t, sig)
+    cov = _project_2d(t, sig)
+    g_cov, grads[i, 10] = _conic_backward(cov, eps2d, opacities[i], valid[i], antialiased,
+                                          upstream, i)  # fmt: skip
+    g_sig, g_j = _covariance_2d_backward(g_cov, t, sig, rot)
+    g_p = _point_backward(g_j, px, py, z, tx, ty, intrinsics, upstream, i)
+    for k in range(3):
+        grads[i, k] = rot[0, k] * g_p[0] + rot[1, k] * g_p[1]
+        if in_depth:  # culled for depth: z is the constant 1
+            grads[i, k] += rot[2, k] * g_p[2]
+    _rotation_backward(g_sig, m, s, rotation, quat_eps, grads, i)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _conic_backward(
+    cov: tuple, eps2d: float, o: float, good: bool, antialiased: bool, upstream: np.ndarray, i: int
+) -> tuple:  # pragma: no cover - compiled
+    """∂L/∂(a, b, c) of the 2D covariance from the conic (c_d, −b, a_d) / det (det is the
+    constant 1 on culled rows) and the antialiasing compensation; and ∂L/∂opacity."""
+    a, b, c = cov
     a_d, c_d = a + eps2d, c + eps2d
     det = a_d * c_d - b * b
-    g_u, g_v = upstream[i, 0], upstream[i, 1]
-    g_ca, g_cb, g_cc = upstream[i, 2], upstream[i, 3], upstream[i, 4]
-    g_o, g_z = upstream[i, 5], upstream[i, 6]
+    g_ca, g_cb, g_cc, g_o = upstream[i, 2], upstream[i, 3], upstream[i, 4], upstream[i, 5]
+    if not good:
+        return (g_cc, -g_cb, g_ca), 0.0
+    d2 = det * det
+    g_a = -g_ca * c_d * c_d / d2 + g_cb * b * c_d / d2 + g_cc * (1 / det - a_d * c_d / d2)
+    g_c = g_ca * (1 / det - c_d * a_d / d2) + g_cb * b * a_d / d2 - g_cc * a_d * a_d / d2
+    g_b = 2 * b * (g_ca * c_d + g_cc * a_d) / d2 - g_cb * (1 / det + 2 * b * b / d2)
+    if not antialiased:
+        return (g_a, g_b, g_c), g_o
+    num, den = a * c - b * b, max(det, 1e-30)
+    comp = math.sqrt(max(num, 0.0) / den)
+    if comp > 0.0:
+        g_r = g_o * o / (2 * comp)
+        if num >= 0.0:
+            g_a, g_b, g_c = g_a + g_r * c / den, g_b - 2 * b * g_r / den, g_c + g_r * a / den
+        if det >= 1e-30:
+            g_det = -g_r * max(num, 0.0) / (den * den)
+            g_a, g_b, g_c = g_a + g_det * c_d, g_b - 2 * b * g_det, g_c + g_det * a_d
+    return (g_a, g_b, g_c), g_o * comp
 
-    # The conic (c_d, −b, a_d) / det; det is the constant 1 on culled rows.
-    if good:
-        d2 = det * det
-        g_ad = -g_ca * c_d * c_d / d2 + g_cb * b * c_d / d2 + g_cc * (1 / det - a_d * c_d / d2)
-        g_cd = g_ca * (1 / det - c_d * a_d / d2) + g_cb * b * a_d / d2 - g_cc * a_d * a_d / d2
-        g_b = 2 * b * (g_ca * c_d + g_cc * a_d) / d2 - g_cb * (1 / det + 2 * b * b / d2)
-    else:
-        g_ad, g_cd, g_b = g_cc, g_ca, -g_cb
-    g_a, g_c = g_ad, g_cd
-    g_opacity = 0.0
-    if good:
-        if antialiased:
-            num = a * c - b * b
-            den = max(det, 1e-30)
-            comp = math.sqrt(max(num, 0.0) / den)
-            g_opacity = g_o * comp
-            if comp > 0.0:
-                g_r = g_o * o / (2 * comp)
-                if num >= 0.0:
-                    g_a += g_r * c / den
-                    g_c += g_r * a / den
-                    g_b += g_r * (-2 * b) / den
-                if det >= 1e-30:
-                    g_det = -g_r * max(num, 0.0) / (den * den)
-                    g_a += g_det * c_d
-                    g_c += g_det * a_d
-                    g_b += g_det * (-2 * b)
-        else:
-            g_opacity = g_o
 
-    # (a, b, c) = T Σ Tᵀ: ∂L/∂Σ = Tᵀ G T and ∂L/∂T = 2 G T Σ, G = [[g_a, g_b/2], [g_b/2, g_c]].
-    h = 0.5 * g_b
+@njit(cache=True, nogil=True, inline="always")
+def _covariance_2d_backward(
+    g_cov: tuple, t: tuple, sig: tuple, rot: np.ndarray
+) -> tuple:  # pragma: no cover
+    """(a, b, c) = T Σ Tᵀ: ∂L/∂Σ = Tᵀ G T and ∂L/∂T = 2 G T Σ with G = [[g_a, g_b/2],
+    [g_b/2, g_c]]; then T = J R gives ∂L/∂J = ∂L/∂T Rᵀ for the entries of J that vary
+    (J00, J02, J11, J12)."""
+    g_a, h, g_c = g_cov[0], 0.5 * g_cov[1], g_cov[2]
     gt = (  # G T
         g_a * t[0] + h * t[3], g_a * t[1] + h * t[4], g_a * t[2] + h * t[5],
         h * t[0] + g_c * t[3], h * t[1] + g_c * t[4], h * t[2] + g_c * t[5],
@@ -297,36 +304,62 @@ def _backward_one(
     g11 = t[1] * gt[1] + t[4] * gt[4]
     g12 = t[1] * gt[2] + t[4] * gt[5]
     g22 = t[2] * gt[2] + t[5] * gt[5]
-    g_sig = (g00, g01, g02, g01, g11, g12, g02, g12, g22)
-    g_t = _times_sigma(gt, sig)  # (G T) Σ; doubled below
-    # T = J R: ∂L/∂J = ∂L/∂T Rᵀ, for the entries of J that vary.
-    g_j00 = 2 * (g_t[0] * rot[0, 0] + g_t[1] * rot[0, 1] + g_t[2] * rot[0, 2])
-    g_j02 = 2 * (g_t[0] * rot[2, 0] + g_t[1] * rot[2, 1] + g_t[2] * rot[2, 2])
-    g_j11 = 2 * (g_t[3] * rot[1, 0] + g_t[4] * rot[1, 1] + g_t[5] * rot[1, 2])
-    g_j12 = 2 * (g_t[3] * rot[2, 0] + g_t[4] * rot[2, 1] + g_t[5] * rot[2, 2])
+    g_t = _times_sigma(gt, sig)  # (G T) Σ, doubled below
+    g_j = (
+        2 * (g_t[0] * rot[0, 0] + g_t[1] * rot[0, 1] + g_t[2] * rot[0, 2]),
+        2 * (g_t[0] * rot[2, 0] + g_t[1] * rot[2, 1] + g_t[2] * rot[2, 2]),
+        2 * (g_t[3] * rot[1, 0] + g_t[4] * rot[1, 1] + g_t[5] * rot[1, 2]),
+        2 * (g_t[3] * rot[2, 0] + g_t[4] * rot[2, 1] + g_t[5] * rot[2, 2]),
+    )
+    return (g00, g01, g02, g01, g11, g12, g02, g12, g22), g_j
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _point_backward(
+    g_j: tuple,
+    px: float,
+    py: float,
+    z: float,
+    tx: float,
+    ty: float,
+    intrinsics: np.ndarray,
+    upstream: np.ndarray,
+    i: int,
+) -> tuple[float, float, float]:  # pragma: no cover - compiled
+    """∂L/∂(camera-space point) from J (with its off-axis clamp: t = clamp(x/z)·z), the
+    2D mean (fx x/z + cx, fy y/z + cy) and the depth; z as drawn (the caller drops its
+    gradient where it was replaced)."""
+    fx, fy, limx, limy = intrinsics[0], intrinsics[1], intrinsics[4], intrinsics[5]
+    g_j00, g_j02, g_j11, g_j12 = g_j
     z2, z3 = z * z, z * z * z
-    g_zz = -g_j00 * fx / z2 - g_j11 * fy / z2 + g_j02 * 2 * fx * tx / z3 + g_j12 * 2 * fy * ty / z3
+    g_z = -g_j00 * fx / z2 - g_j11 * fy / z2 + g_j02 * 2 * fx * tx / z3 + g_j12 * 2 * fy * ty / z3
     g_tx, g_ty = -g_j02 * fx / z2, -g_j12 * fy / z2
     g_px, g_py = 0.0, 0.0
     rx, ry = px / z, py / z
     if -limx <= rx <= limx:
         g_px += g_tx
     else:
-        g_zz += g_tx * min(max(rx, -limx), limx)
+        g_z += g_tx * min(max(rx, -limx), limx)
     if -limy <= ry <= limy:
         g_py += g_ty
     else:
-        g_zz += g_ty * min(max(ry, -limy), limy)
-    # The 2D mean (fx x/z + cx, fy y/z + cy) and the depth.
+        g_z += g_ty * min(max(ry, -limy), limy)
+    g_u, g_v = upstream[i, 0], upstream[i, 1]
     g_px += g_u * fx / z
     g_py += g_v * fy / z
-    g_zz += -g_u * fx * px / z2 - g_v * fy * py / z2 + g_z
-    g_pz = g_zz if in_depth else 0.0
-    for k in range(3):
-        grads[i, k] = rot[0, k] * g_px + rot[1, k] * g_py + rot[2, k] * g_pz
+    g_z += -g_u * fx * px / z2 - g_v * fy * py / z2 + upstream[i, 6]
+    return g_px, g_py, g_z
 
-    # Σ = M Mᵀ, M = R diag(s) (∂L/∂Σ is symmetric).
-    gm = (  # ∂L/∂M = 2 ∂L/∂Σ M, then ∂L/∂R = ∂L/∂M diag(s) and ∂L/∂s_q = Σ_p ∂L/∂M_pq R_pq
+
+@njit(cache=True, nogil=True, inline="always")
+def _rotation_backward(
+    g_sig: tuple, m: tuple, s: tuple, rotation: tuple, quat_eps: float, grads: np.ndarray, i: int
+) -> None:  # pragma: no cover - compiled
+    """Σ = M Mᵀ with M = R diag(s): ∂L/∂M = 2 ∂L/∂Σ M (∂L/∂Σ symmetric), ∂L/∂s_q =
+    Σ_p ∂L/∂M_pq R_pq and ∂L/∂R = ∂L/∂M diag(s); then back through the rotation of a unit
+    quaternion (`geometry.quaternion_to_rotation`) and its normalisation."""
+    qw, qx, qy, qz, norm, n, big, r = rotation
+    gm = (
         2 * (g_sig[0] * m[0] + g_sig[1] * m[3] + g_sig[2] * m[6]),
         2 * (g_sig[0] * m[1] + g_sig[1] * m[4] + g_sig[2] * m[7]),
         2 * (g_sig[0] * m[2] + g_sig[1] * m[5] + g_sig[2] * m[8]),
@@ -340,9 +373,8 @@ def _backward_one(
     grads[i, 7] = gm[0] * r[0] + gm[3] * r[3] + gm[6] * r[6]
     grads[i, 8] = gm[1] * r[1] + gm[4] * r[4] + gm[7] * r[7]
     grads[i, 9] = gm[2] * r[2] + gm[5] * r[5] + gm[8] * r[8]
-    g_r = (gm[0] * s0, gm[1] * s1, gm[2] * s2, gm[3] * s0, gm[4] * s1, gm[5] * s2,
-           gm[6] * s0, gm[7] * s1, gm[8] * s2)  # fmt: skip
-    # The rotation of a unit quaternion (geometry.quaternion_to_rotation).
+    g_r = (gm[0] * s[0], gm[1] * s[1], gm[2] * s[2], gm[3] * s[0], gm[4] * s[1], gm[5] * s[2],
+           gm[6] * s[0], gm[7] * s[1], gm[8] * s[2])  # fmt: skip
     gw = 2 * (-qz * g_r[1] + qy * g_r[2] + qz * g_r[3] - qx * g_r[5] - qy * g_r[6] + qx * g_r[7])
     gx = 2 * (qy * g_r[1] + qz * g_r[2] + qy * g_r[3] - 2 * qx * g_r[4] - qw * g_r[5]
               + qz * g_r[6] + qw * g_r[7] - 2 * qx * g_r[8])  # fmt: skip
@@ -357,4 +389,3 @@ def _backward_one(
     scale = 1.0 / (n * big)
     grads[i, 3], grads[i, 4] = gw * scale, gx * scale
     grads[i, 5], grads[i, 6] = gy * scale, gz * scale
-    grads[i, 10] = g_opacity
