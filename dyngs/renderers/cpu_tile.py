@@ -1,7 +1,9 @@
 """`cpu-tile`: the fast path on CPUs, with compiled compositing kernels.
 
-`prepare`, `project` and `bin_tiles` are the shared PyTorch stages (O(N), autograd does
-their backward); compositing forward and backward are the numba kernels of
+Projection (`project_compiled`: `stages.project`'s geometry, forward and backward, in
+`dyngs.renderers.project_kernels`), binning (`bin_tiles_compiled`, the same bins as
+`stages.bin_tiles`) and compositing forward and backward are compiled (numba); only the
+colours (`eval_sh`) stay in PyTorch. Compositing is in
 `dyngs.renderers.tile_kernels`, wrapped in one `torch.autograd.Function`, so gradients
 reach the 2D means (which densification reads), conics, opacities, colours and depths,
 and from there every Gaussian parameter. It is held to `cpu-reference`, the
@@ -29,8 +31,18 @@ from jaxtyping import Float
 from torch import Tensor
 
 from dyngs.errors import ConfigError, RendererUnavailable
+from dyngs.ops import finite_rows
 from dyngs.renderers.base import Guards, RenderOutput
-from dyngs.renderers.stages import TileBins, bin_tiles, finish_image, project
+from dyngs.renderers.stages import (
+    _EXTENT_ABSOLUTE_MARGIN,
+    _EXTENT_RELATIVE_MARGIN,
+    GEOMETRY_DTYPE,
+    ScreenGaussians,
+    TileBins,
+    depth_order,
+    finish_image,
+)
+from dyngs.sh import eval_sh
 from dyngs.types import Camera, Gaussians
 
 
@@ -63,7 +75,8 @@ class CpuTileConfig:
 
 
 class CpuTileRenderer:
-    """`prepare` → `project` → `bin_tiles` in PyTorch, then the compiled kernels.
+    """Compiled projection, binning and compositing, held to `prepare` → `project` →
+    `bin_tiles` → compositing of cpu-reference.
     `contribution=True` (or `with_contribution`) also measures each Gaussian's
     contribution."""
 
@@ -91,11 +104,13 @@ class CpuTileRenderer:
                 f"renderer cpu-tile draws on the CPU, not {gaussians.means.device}; "
                 "use renderer:cuda-tile on a GPU"
             )
-        screen = project(gaussians, camera, self.guards, antialiased=self.config.antialiased)
+        screen = project_compiled(
+            gaussians, camera, self.guards, self.config.antialiased, self.config.threads
+        )
         if screen.means2d.requires_grad:
             screen.means2d.retain_grad()
         size = (camera.width, camera.height, self.config.tile_size)
-        bins = bin_tiles(screen, *size)
+        bins = bin_tiles_compiled(screen, *size)
         features = torch.cat((screen.colors, screen.depths.to(screen.colors.dtype)[:, None]), 1)
         log_opacity = screen.opacities.clamp_min(1e-30).log()
         plan = _Plan(bins, size, self.guards, self.config.threads, contribution)
@@ -162,28 +177,176 @@ _LOCK = threading.Lock()
 _COMPILED: set[str] = set()
 
 
-def _launch(kernel: Any, threads: int | None, *args: Any) -> None:
-    """Run a kernel with the configured thread count; the first call of a process that
-    has to compile it says so, and how long it took."""
+def _thread_count(threads: int | None) -> int:
+    """The configured threads (None: PyTorch's), within numba's pool."""
     import numba
 
     most = numba.config.NUMBA_NUM_THREADS  # type: ignore[attr-defined]  # set at import
-    count = max(1, min(threads or torch.get_num_threads(), most))
-    key = f"{kernel.__name__}:{args[0][3].dtype}"
+    return max(1, min(threads or torch.get_num_threads(), most))
+
+
+def _launch(kernel: Any, threads: int | None, *args: Any) -> None:
+    """Run a compositing kernel (it takes the thread count last, to deal tiles)."""
+    count = _thread_count(threads)
+    _run(kernel, count, str(args[0][3].dtype), *args, count)
+
+
+def _run(kernel: Any, count: int, dtype: str, *args: Any) -> None:
+    """Run a kernel on `count` threads; the first call of a process that has to compile it
+    says so, and how long it took."""
+    import numba
+
+    key = f"{kernel.__name__}:{dtype}"
     with _LOCK:
         numba.set_num_threads(count)
         if key in _COMPILED:
-            kernel(*args, count)
+            kernel(*args)
             return
         misses = sum(kernel.stats.cache_misses.values())
         started = time.perf_counter()
-        kernel(*args, count)
+        kernel(*args)
         _COMPILED.add(key)
         if sum(kernel.stats.cache_misses.values()) > misses:
             sys.stderr.write(
-                f"[cpu-tile] compiled {kernel.__name__} for {args[0][3].dtype} in "
+                f"[cpu-tile] compiled {kernel.__name__} for {dtype} in "
                 f"{time.perf_counter() - started:.1f} s (cached on disk for later runs)\n"
             )
+
+
+def project_compiled(
+    gaussians: Gaussians,
+    camera: Camera,
+    guards: Guards,
+    antialiased: bool = False,
+    threads: int | None = None,
+) -> ScreenGaussians:
+    """`stages.project` with the geometry compiled (`project_kernels`); the colours are
+    `eval_sh` from the same float64 camera-relative means, as there."""
+    g = gaussians
+    used = g.colors if g.sh_degree is None else g.colors[:, : (g.sh_degree + 1) ** 2]
+    finite = finite_rows(g.means, g.quats, g.scales, g.opacities, used)
+    w2c = camera.world_to_camera.to(dtype=GEOMETRY_DTYPE)
+    view = _View(camera, guards, antialiased, finite.numpy(), w2c, _thread_count(threads))
+    params = (t.to(GEOMETRY_DTYPE) for t in (g.means, g.quats, g.scales, g.opacities))
+    means2d, conics, opacities, depths, extents, visible = _Project.apply(*params, view)
+    colors = torch.where(finite.view(-1, *[1] * (used.ndim - 1)), used, 0)
+    if g.sh_degree is None:
+        rgb = colors
+    else:
+        means = torch.where(finite[:, None], g.means, 0).to(GEOMETRY_DTYPE)
+        center = -w2c[:3, :3].T @ w2c[:3, 3]
+        rgb = eval_sh(g.sh_degree, colors, (means - center).to(g.means.dtype))
+    return ScreenGaussians(
+        means2d=means2d,
+        conics=conics,
+        opacities=opacities,
+        depths=depths,
+        colors=rgb,
+        extents=extents,
+        visible=visible,
+        num_nonfinite=(~finite).sum(),
+    )
+
+
+class _View:
+    """The camera and guards as the projection kernels take them."""
+
+    def __init__(
+        self,
+        camera: Camera,
+        guards: Guards,
+        antialiased: bool,
+        finite: np.ndarray,
+        w2c: Tensor,
+        threads: int,
+    ) -> None:
+        self.threads = threads
+        fx, fy = camera.fx, camera.fy
+        lim_x = guards.off_axis * 0.5 * camera.width / fx
+        lim_y = guards.off_axis * 0.5 * camera.height / fy
+        self.rotation = np.ascontiguousarray(w2c[:3, :3].numpy())
+        self.translation = np.ascontiguousarray(w2c[:3, 3].numpy())
+        self.intrinsics = np.array(
+            [fx, fy, camera.cx, camera.cy, lim_x, lim_y, camera.width, camera.height],
+            dtype=np.float64,
+        )
+        self.limits = np.array(
+            [camera.near, camera.far, guards.eps2d, guards.alpha_min, guards.quat_eps,
+             _EXTENT_RELATIVE_MARGIN, _EXTENT_ABSOLUTE_MARGIN], dtype=np.float64,
+        )  # fmt: skip
+        self.antialiased = antialiased
+        self.finite = finite
+        self.valid: np.ndarray | None = None
+        """Rows the forward kept (backward treats the others' det as the constant 1)."""
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(rotation, translation, intrinsics, limits), as `project_kernels` takes them."""
+        return self.rotation, self.translation, self.intrinsics, self.limits
+
+
+class _Project(torch.autograd.Function):
+    """(means, quaternions, scales, opacities), float64 → (2D means, conics, opacities,
+    depths) and the non-differentiable extents and visibility."""
+
+    @staticmethod
+    def forward(  # type: ignore[override]
+        ctx: Any, means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, view: _View
+    ) -> tuple[Tensor, ...]:
+        from dyngs.renderers import project_kernels as pk
+
+        n = len(means)
+        inputs = tuple(_numpy(t) for t in (means, quats, scales, opacities))
+        out = np.empty((n, pk.OUT_COLUMNS))
+        valid, visible = np.empty(n, dtype=np.bool_), np.empty(n, dtype=np.bool_)
+        scene = (*inputs, view.finite)
+        _run(pk.project_forward, view.threads, "float64", scene, view.arrays(), view.antialiased,
+             out, valid, visible)  # fmt: skip
+        view.valid = valid
+        ctx.view, ctx.inputs = view, inputs
+        result = torch.from_numpy(out)
+        extents, shown = result[:, 7:9].clone(), torch.from_numpy(visible)
+        ctx.mark_non_differentiable(extents, shown)
+        return (result[:, 0:2].clone(), result[:, 2:5].clone(), result[:, 5].clone(),
+                result[:, 6].clone(), extents, shown)  # fmt: skip
+
+    @staticmethod
+    def backward(  # type: ignore[override]
+        ctx: Any, *grads: Tensor | None
+    ) -> tuple[Tensor | None, ...]:
+        from dyngs.renderers import project_kernels as pk
+
+        view: _View = ctx.view
+        n = len(ctx.inputs[0])
+        upstream = np.zeros((n, 7))
+        for grad, (lo, hi) in zip(grads[:4], ((0, 2), (2, 5), (5, 6), (6, 7)), strict=True):
+            if grad is not None:
+                upstream[:, lo:hi] = grad.detach().to(GEOMETRY_DTYPE).reshape(n, hi - lo).numpy()
+        out = np.empty((n, pk.GRAD_COLUMNS))
+        scene, valid = (*ctx.inputs, view.finite), view.valid
+        _run(pk.project_backward, view.threads, "float64", scene, view.arrays(), valid,
+             view.antialiased, upstream, out)  # fmt: skip
+        result = torch.from_numpy(out)
+        return result[:, 0:3], result[:, 3:7], result[:, 7:10], result[:, 10], None
+
+
+def bin_tiles_compiled(
+    screen: ScreenGaussians, width: int, height: int, tile_size: int
+) -> TileBins:
+    """`stages.bin_tiles` with the pairs dealt to tiles by a compiled counting sort (O(M),
+    where the reference expands and sorts them in PyTorch): the same bins, element for
+    element (tests/renderers/test_cpu_tile.py)."""
+    from dyngs.renderers import tile_kernels
+
+    order, lo, hi = depth_order(screen, width, height)
+    tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
+    gaussian, start, count = tile_kernels.bin_pairs(
+        order.numpy(), lo.numpy(), hi.numpy(), tile_size, tiles_x, tiles_x * tiles_y
+    )
+    return TileBins(
+        gaussian=torch.from_numpy(gaussian),
+        tile_start=torch.from_numpy(start),
+        tile_count=torch.from_numpy(count),
+    )
 
 
 def _per_gaussian(bins: TileBins, per_pair: np.ndarray, count: int) -> np.ndarray:

@@ -225,15 +225,24 @@ class TileBins:
     tile_count: Int[Tensor, " T"]
 
 
+def depth_order(
+    screen: ScreenGaussians, width: int, height: int
+) -> tuple[Int[Tensor, " V"], Int[Tensor, "V 2"], Int[Tensor, "V 2"]]:
+    """The visible Gaussians front to back (a stable sort, so ties keep index order), with
+    the inclusive pixel range of each one's box: what binning into tiles starts from."""
+    visible = screen.visible.nonzero().squeeze(1)
+    order = visible[torch.argsort(screen.depths.detach()[visible], stable=True)]
+    lo, hi = pixel_range(screen.means2d.detach()[order], screen.extents[order], width, height)
+    return order, lo, hi
+
+
 def bin_tiles(screen: ScreenGaussians, width: int, height: int, tile_size: int) -> TileBins:
     """Every visible Gaussian in every tile its extent box touches, in depth order. The
     stage between `project` and compositing for the tile rasterizers."""
     tiles_x = -(-width // tile_size)
     tiles_y = -(-height // tile_size)
     device = screen.means2d.device
-    visible = screen.visible.nonzero().squeeze(1)
-    order = visible[torch.argsort(screen.depths.detach()[visible], stable=True)]
-    lo, hi = pixel_range(screen.means2d.detach()[order], screen.extents[order], width, height)
+    order, lo, hi = depth_order(screen, width, height)
     t_lo, t_hi = lo // tile_size, hi // tile_size
     span = t_hi - t_lo + 1  # [V, 2] tiles along x and y
     per_gaussian = span[:, 0] * span[:, 1]

@@ -406,3 +406,33 @@ def sum_pairs(
         g = gaussian[m]
         for j in range(per_pair.shape[1]):
             per_gaussian[g, j] += per_pair[m, j]
+
+
+@njit(cache=True, nogil=True)
+def bin_pairs(
+    order: np.ndarray, lo: np.ndarray, hi: np.ndarray, tile_size: int, tiles_x: int, tiles: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    """`stages.bin_tiles` as a counting sort: the Gaussians `order` (depth order) with
+    inclusive pixel boxes [lo, hi] (columns, rows) → (Gaussian of each pair, first pair of
+    each tile, pairs per tile). One pass counts each tile's pairs, a second deals the
+    Gaussians out in depth order, so every tile's list comes out front to back, exactly as
+    the stable sort by tile of the reference leaves it."""
+    count = np.zeros(tiles, dtype=np.int64)
+    for v in range(order.shape[0]):
+        for ty in range(lo[v, 1] // tile_size, hi[v, 1] // tile_size + 1):
+            for tx in range(lo[v, 0] // tile_size, hi[v, 0] // tile_size + 1):
+                count[ty * tiles_x + tx] += 1
+    start = np.empty(tiles, dtype=np.int64)
+    total = 0
+    for t in range(tiles):
+        start[t] = total
+        total += count[t]
+    gaussian = np.empty(total, dtype=np.int64)
+    fill = start.copy()
+    for v in range(order.shape[0]):
+        for ty in range(lo[v, 1] // tile_size, hi[v, 1] // tile_size + 1):
+            for tx in range(lo[v, 0] // tile_size, hi[v, 0] // tile_size + 1):
+                t = ty * tiles_x + tx
+                gaussian[fill[t]] = order[v]
+                fill[t] += 1
+    return gaussian, start, count

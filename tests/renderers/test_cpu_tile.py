@@ -6,6 +6,7 @@ hard cases run on it too (test_hard_cases.py)."""
 from __future__ import annotations
 
 from dataclasses import replace
+from typing import Any
 
 import pytest
 import torch
@@ -16,7 +17,7 @@ from dyngs.renderers import cpu_tile
 from dyngs.renderers.base import Guards, RenderOutput
 from dyngs.renderers.cpu_reference import CpuReferenceConfig
 from dyngs.renderers.cpu_tile import CpuTileConfig
-from dyngs.renderers.stages import bin_tiles, project
+from dyngs.renderers.stages import ScreenGaussians, bin_tiles, project
 from dyngs.types import Camera, Gaussians
 from tests.renderers.scenes import random_scene
 from tests.renderers.test_cpu_reference import _tiny_scene
@@ -186,6 +187,107 @@ def test_renders_whose_gaussians_all_stop_early_match() -> None:
     assert bool((want.contribution[n // 2 :] == 0).all())
     _assert_parity(got, want, torch.float64)
     _assert_gradients_match(got_grads, want_grads, torch.float64)
+
+
+SCREEN_FIELDS = ("means2d", "conics", "opacities", "depths", "colors")
+
+
+def _projected(
+    project_fn: Any, gaussians: Gaussians, camera: Camera, antialiased: bool
+) -> tuple[ScreenGaussians, dict[str, Tensor]]:
+    """A projection and the gradients of a random weighting of every differentiable field,
+    so that each path of the backward (culled rows too) carries some gradient."""
+    leaves = {
+        name: getattr(gaussians, name).detach().clone().requires_grad_(True) for name in PARAMS
+    }
+    screen = project_fn(Gaussians(**leaves, sh_degree=gaussians.sh_degree), camera, Guards(),
+                        antialiased)  # fmt: skip
+    gen = torch.Generator().manual_seed(11)
+    loss = sum(
+        (getattr(screen, f) * torch.randn(getattr(screen, f).shape, generator=gen,
+                                          dtype=torch.float64).to(getattr(screen, f).dtype)).sum()
+        for f in SCREEN_FIELDS
+    )  # fmt: skip
+    loss.backward()  # type: ignore[union-attr]
+    return screen, {name: leaf.grad for name, leaf in leaves.items() if leaf.grad is not None}
+
+
+@pytest.mark.parametrize("antialiased", [False, True], ids=["plain", "antialiased"])
+@pytest.mark.parametrize(
+    ("seed", "n", "width", "height", "sh_degree"),
+    [(0, 400, 97, 61, None), (1, 900, 64, 48, 2), (2, 1500, 130, 70, 3)],
+)
+def test_compiled_projection_matches_the_pytorch_stage(
+    seed: int, n: int, width: int, height: int, sh_degree: int | None, antialiased: bool
+) -> None:
+    gaussians, camera, _ = random_scene(seed, n, width, height, torch.float64, sh_degree)
+    means, quats, scales = (t.clone() for t in (gaussians.means, gaussians.quats, gaussians.scales))
+    means[0, 1] = float("nan")  # culled and counted; no gradient may leak from them
+    quats[1] = 0.0  # no rotation
+    scales[2, 0] = float("inf")
+    w2c = camera.world_to_camera.to(torch.float64)
+    behind = torch.tensor([0.1, -0.2, -1.0], dtype=torch.float64)  # camera space, z < 0
+    means[3] = w2c[:3, :3].T @ (behind - w2c[:3, 3])
+    gaussians = replace(gaussians, means=means, quats=quats, scales=scales)
+    want, want_grads = _projected(project, gaussians, camera, antialiased)
+    got, got_grads = _projected(cpu_tile.project_compiled, gaussians, camera, antialiased)
+    assert int(got.num_nonfinite) == int(want.num_nonfinite) == 2
+    assert float(want.depths[3]) == 1.0  # culled for depth, its depth replaced by 1
+    assert torch.equal(got.visible, want.visible) and bool(want.visible.any())
+    for name in (*SCREEN_FIELDS, "extents"):
+        diff = float((getattr(got, name) - getattr(want, name)).detach().abs().max())
+        assert diff <= 1e-9 * max(float(getattr(want, name).detach().abs().max()), 1), name
+    _assert_gradients_match(got_grads, want_grads, torch.float64)
+    for grad in got_grads.values():
+        assert bool(grad[[0, 2]].eq(0).all()) and bool(grad.isfinite().all())
+
+
+@pytest.mark.parametrize("antialiased", [False, True], ids=["plain", "antialiased"])
+def test_gradcheck_of_the_compiled_projection(antialiased: bool) -> None:
+    gaussians, camera, _ = random_scene(5, 6, 16, 12, torch.float64, 1)
+    gen = torch.Generator().manual_seed(2)
+    weights = [torch.randn(4, generator=gen, dtype=torch.float64) for _ in range(3)]
+
+    def projected(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor) -> Tensor:
+        g = Gaussians(means, quats, scales, opacities, gaussians.colors, gaussians.sh_degree)
+        s = cpu_tile.project_compiled(g, camera, Guards(), antialiased)
+        fields = (s.means2d.sum(1), s.conics @ weights[0][:3], s.opacities, s.depths)
+        return torch.stack(fields, 1) @ weights[1] + (s.colors.sum(1) * weights[2][0])
+
+    inputs = tuple(getattr(gaussians, n).detach().clone().requires_grad_(True) for n in PARAMS[:4])
+    assert torch.autograd.gradcheck(projected, inputs, atol=1e-7, rtol=1e-5)
+
+
+@pytest.mark.parametrize(
+    ("seed", "n", "width", "height", "tile_size"),
+    [
+        (0, 300, 97, 61, 16),
+        (1, 2000, 33, 129, 8),
+        (2, 1200, 130, 70, 4),
+        (3, 50, 20, 10, 32),
+        (4, 3000, 101, 101, 1),
+    ],
+)
+def test_compiled_binning_gives_the_reference_bins(
+    seed: int, n: int, width: int, height: int, tile_size: int
+) -> None:
+    # Element for element: the same pairs, in the same (tile, then depth) order.
+    gaussians, camera, _ = random_scene(seed, n, width, height, torch.float64, 1)
+    screen = project(gaussians, camera, Guards())
+    want = bin_tiles(screen, width, height, tile_size)
+    got = cpu_tile.bin_tiles_compiled(screen, width, height, tile_size)
+    assert len(want.gaussian) >= int(screen.visible.sum()) > 0
+    for name in ("gaussian", "tile_start", "tile_count"):
+        assert torch.equal(getattr(got, name), getattr(want, name)), name
+
+
+def test_compiled_binning_of_a_view_with_nothing_visible() -> None:
+    gaussians, camera, _ = random_scene(8, 50, 20, 10, torch.float32)
+    screen = project(gaussians, camera, Guards())
+    screen = replace(screen, visible=torch.zeros_like(screen.visible))
+    got = cpu_tile.bin_tiles_compiled(screen, 20, 10, 4)
+    assert len(got.gaussian) == 0 and int(got.tile_count.sum()) == 0
+    assert torch.equal(got.tile_start, torch.zeros(15, dtype=torch.int64))
 
 
 def test_without_numba_it_says_what_is_missing(monkeypatch: pytest.MonkeyPatch) -> None:
