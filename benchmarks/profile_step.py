@@ -1,0 +1,91 @@
+"""Where a training step's time goes: train to a step, then profile the steps after it.
+
+    python benchmarks/profile_step.py --at 1500 --steps 100 -- hexplane-4dgs --data demo
+
+Everything after `--` is a `dyngs-train` command line (no run folder is written). The
+script trains `--at` steps unprofiled, times `--timed` steps (the median step, wall
+clock), then runs `--steps` steps under `torch.profiler` and prints its table of
+operators by self CPU time. It writes the step time, the Gaussian count and the top
+operators (self CPU ms per step, calls per step) to `--output` as JSON. Profiler
+overhead inflates the profiled steps: read the table for shares, the timed median for
+the step's cost.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+from rich.console import Console
+from torch.profiler import ProfilerActivity, profile
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from dyngs.cli import parse  # noqa: E402
+from dyngs.engine.trainer import Trainer  # noqa: E402
+from dyngs.engine.writer import NullWriter  # noqa: E402
+from dyngs.tools.common import machine_info, source_commit  # noqa: E402
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--at", type=int, default=1500, help="steps trained before timing")
+    parser.add_argument("--timed", type=int, default=50, help="steps timed one by one")
+    parser.add_argument("--steps", type=int, default=100, help="steps profiled")
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--top", type=int, default=25, help="operators reported")
+    parser.add_argument(
+        "--output", type=Path, default=ROOT / "benchmarks/results/profile-step.json"
+    )
+    parser.add_argument("train", nargs=argparse.REMAINDER, help="-- then a dyngs-train command")
+    args = parser.parse_args()
+    command = args.train[1:] if args.train[:1] == ["--"] else args.train
+    torch.set_num_threads(args.threads)
+    config, _ = parse(command)
+    with tempfile.TemporaryDirectory() as folder:
+        trainer = Trainer(config, Path(folder), NullWriter(), Console(quiet=True))
+        step = 0
+        for step in range(args.at):
+            trainer.train_step(step)
+        times = []
+        for step in range(args.at, args.at + args.timed):
+            started = time.perf_counter()
+            trainer.train_step(step)
+            times.append(time.perf_counter() - started)
+        first = args.at + args.timed
+        with profile(activities=[ProfilerActivity.CPU]) as prof:
+            for step in range(first, first + args.steps):
+                trainer.train_step(step)
+        gaussians = len(trainer.model.canonical)
+        dynamic = trainer.model.dynamic_fraction()
+    averages = sorted(prof.key_averages(), key=lambda e: e.self_cpu_time_total, reverse=True)
+    print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=args.top))
+    step_ms = statistics.median(times) * 1e3
+    print(f"step {args.at}: median {step_ms:.1f} ms over {args.timed} steps, "
+          f"{gaussians} Gaussians, {dynamic:.0%} dynamic")  # fmt: skip
+    result = {
+        "command": " ".join(command),
+        "at": args.at,
+        "step_ms_median": step_ms,
+        "gaussians": gaussians,
+        "dynamic_fraction": dynamic,
+        "operators_self_ms_per_step": {
+            e.key: {"ms": e.self_cpu_time_total / 1e3 / args.steps, "calls": e.count / args.steps}
+            for e in averages[: args.top]
+        },
+        "commit": source_commit(ROOT),
+        "machine": machine_info(args.threads),
+    }
+    args.output.write_text(json.dumps(result, indent=1) + "\n")
+    print(f"wrote {args.output}")
+
+
+if __name__ == "__main__":
+    main()
