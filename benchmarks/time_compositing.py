@@ -1,0 +1,93 @@
+"""Time cpu-tile's compositing kernels alone, per launch, and what a pixel visit costs.
+
+    python benchmarks/time_compositing.py --threads 1
+
+`bench_renderer.py` times whole renders, each in a fresh process, against other
+renderers; this script is the quick loop for work on the kernels themselves
+(`dyngs/renderers/tile_kernels.py`): it renders `bench_renderer.py`'s synthetic scenes
+in-process, forward and backward, and reports, as medians over `--repeats` renders after
+a warm-up, the milliseconds spent in the forward and backward compositing launches, the
+pixel visits (pixels inside a Gaussian's row spans while still compositing) and pairs
+drawn that the forward kernel counts, and the thread-time per visit,
+launch ms × threads ÷ visits. Edit the kernels, run it again, compare. It writes the
+figures to `--output` as JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from bench_renderer import _time_compositing, make_scene  # noqa: E402
+
+from dyngs.renderers import RENDERERS  # noqa: E402
+from dyngs.tools.common import machine_info, source_commit  # noqa: E402
+from dyngs.types import Gaussians  # noqa: E402
+
+CASES = [("10k-128", 10_000, 128), ("50k-256", 50_000, 256)]  # (name, Gaussians, size)
+
+
+def time_case(n: int, size: int, sigma_px: float, threads: int, repeats: int) -> dict:
+    """Render one scene forward and backward `repeats` + 1 times; medians of the timed ones."""
+    spent = _time_compositing()
+    draw = RENDERERS.get("cpu-tile")(threads=threads).build()
+    scene, camera = make_scene(n, size, sigma_px)
+    forward, backward = [], []
+    for repeat in range(repeats + 1):
+        leaves = {name: getattr(scene, name).clone().requires_grad_(True)
+                  for name in ("means", "quats", "scales", "opacities", "colors")}  # fmt: skip
+        spent.clear()
+        out = draw(Gaussians(**leaves), camera, torch.zeros(3))
+        (out.rgb.sum() + out.alpha.sum()).backward()
+        if repeat > 0:
+            forward.append(spent[0])
+            backward.append(spent[1])
+    work = draw.last_work
+    visits, pairs = int(work[:, 0].sum()), int(work[:, 1].sum())
+    forward_ms, backward_ms = statistics.median(forward) * 1e3, statistics.median(backward) * 1e3
+    return {"forward_ms": forward_ms, "backward_ms": backward_ms, "visits": visits,
+            "pairs_drawn": pairs, "forward_ns_per_visit": forward_ms * 1e6 * threads / visits,
+            "backward_ns_per_visit": backward_ms * 1e6 * threads / visits,
+            "forward_runs_ms": [s * 1e3 for s in forward],
+            "backward_runs_ms": [s * 1e3 for s in backward]}  # fmt: skip
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--repeats", type=int, default=7)
+    parser.add_argument("--sigma-px", type=float, default=1.5, help="as bench_renderer.py's")
+    parser.add_argument(
+        "--output", type=Path, default=ROOT / "benchmarks/results/compositing.json"
+    )
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    started = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+    results = {}
+    for name, n, size in CASES:
+        r = results[name] = time_case(n, size, args.sigma_px, args.threads, args.repeats)
+        print(f"{name}: forward {r['forward_ms']:.2f} ms, backward {r['backward_ms']:.2f} ms, "
+              f"{r['visits']:,} visits, {r['pairs_drawn']:,} pairs drawn, "
+              f"{r['forward_ns_per_visit']:.1f} / {r['backward_ns_per_visit']:.1f} "
+              f"thread-ns a visit")  # fmt: skip
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    args.output.write_text(json.dumps({
+        "command": " ".join(sys.argv), "commit": source_commit(ROOT), "started": started,
+        "machine": machine_info(args.threads), "threads": args.threads,
+        "sigma_px": args.sigma_px, "cases": results}, indent=1))  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()
