@@ -14,8 +14,11 @@ of `--sigma-px` pixels, opacities uniform in [0.05, 0.95], RGB colours, black ba
 cpu-tile's time in its compositing kernels is reported apart ("compos."); the rest of its
 render is projection, binning and the PyTorch glue around them.
 
-Every (case, renderer) runs in a fresh process (its peak memory is its own) `--repeats`
-times after one warm-up; `--rounds` rounds cycle through all of them in turn, so that a
+Every (case, renderer) runs in a fresh process (its peak memory is its own: "peak MB"
+is what the process's peak RSS rose by from before the warm-up, one-off costs such as
+loading compiled kernels included; "steady" what it rose by over the timed renders alone,
+on Linux, where the peak can be reset after the warm-up) `--repeats` times after one
+warm-up; `--rounds` rounds cycle through all of them in turn, so that a
 busy spell of the machine hits every renderer alike, and the medians over all rounds are
 reported. Every renderer gets `--threads` threads. Each image is compared with
 cpu-reference's (peers: the largest difference, as their rules differ in detail).
@@ -131,6 +134,7 @@ def run_dyngs(renderer: str, scene: Path, out: Path, repeats: int, backward: boo
     base = {n: torch.from_numpy(s[n]) for n in ("means", "quats", "scales", "opacities", "colors")}
     forward_s, total_s, pairs = [], [], None
     baseline = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    steady_base: int | None = None
     for repeat in range(repeats + 1):
         leaves = {n: t.clone().requires_grad_(backward) for n, t in base.items()}
         started = time.perf_counter()
@@ -143,17 +147,42 @@ def run_dyngs(renderer: str, scene: Path, out: Path, repeats: int, backward: boo
             total_s.append(time.perf_counter() - started)
         elif composite_s is not None:
             composite_s.clear()  # the warm-up's
+        if repeat == 0 and repeats > 0:
+            del out_
+            steady_base = _reset_peak_rss()
     work = getattr(draw, "last_work", None)
     if work is not None:
         pairs = int(work[:, 1].sum())
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    steady = _status_kb("VmHWM") - steady_base if steady_base is not None else math.nan
     np.save(out.with_suffix(".npy"), out_.rgb.detach().numpy())
     if composite_s is not None and backward:  # each repeat's forward and backward together
         composite_s = [a + b for a, b in zip(composite_s[0::2], composite_s[1::2], strict=True)]
     out.write_text(json.dumps({"forward_s": forward_s, "total_s": total_s, "pairs": pairs,
                                "composite_s": composite_s,
                                "peak_rss_mb": peak / 1024,
-                               "peak_increase_mb": (peak - baseline) / 1024}))  # fmt: skip
+                               "peak_increase_mb": (peak - baseline) / 1024,
+                               "steady_peak_increase_mb": steady / 1024}))  # fmt: skip
+
+
+def _status_kb(field: str) -> int:
+    """A memory figure of this process from /proc/self/status (Linux), in KiB."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith(field + ":"):
+            return int(line.split()[1])
+    raise KeyError(field)
+
+
+def _reset_peak_rss() -> int | None:
+    """Reset this process's peak RSS to its current RSS (Linux: /proc/self/clear_refs)
+    and return that RSS in KiB, so that the peak read later is the timed renders' own,
+    without the first render's one-off costs (loading compiled kernels, first
+    allocations); None where the system offers no such reset."""
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+        return _status_kb("VmRSS")
+    except (OSError, KeyError):
+        return None
 
 
 def _time_compositing() -> list[float]:
@@ -312,7 +341,9 @@ def summarise(cases: list, renderers: list, runs: dict, rates: dict) -> list[dic
                    "forward_ms": 1e3 * statistics.median(t for r in good for t in r["forward_s"]),
                    "total_ms": 1e3 * statistics.median(t for r in good for t in r["total_s"]),
                    "peak_increase_mb": statistics.median(
-                       r.get("peak_increase_mb", math.nan) for r in good)}  # fmt: skip
+                       r.get("peak_increase_mb", math.nan) for r in good),
+                   "steady_peak_increase_mb": statistics.median(
+                       r.get("steady_peak_increase_mb", math.nan) for r in good)}  # fmt: skip
             if reference is not None:
                 diff = np.abs(np.load(good[-1]["image"]) - np.load(reference["image"]))
                 row["max_diff_vs_reference"] = float(diff.max())
@@ -333,8 +364,8 @@ def print_table(rows: list[dict], rates: dict) -> None:
     flops, exps = rates["flops"] / 1e9, rates["exps"] / 1e9
     print(f"\nrates: {flops:.1f} GFLOP/s (float32 multiply-add), {exps:.2f} G exp/s")
     header = ("case", "renderer", "fwd ms", "total ms", "compos.", "× limit", "max diff",
-              "peak MB")  # fmt: skip
-    print("{:>14} {:>14} {:>9} {:>9} {:>8} {:>8} {:>9} {:>8}".format(*header))
+              "peak MB", "steady")  # fmt: skip
+    print("{:>14} {:>14} {:>9} {:>9} {:>8} {:>8} {:>9} {:>8} {:>8}".format(*header))
     for r in rows:
         if "error" in r:
             print(f"{r['case']:>14} {r['renderer']:>14}  error: {r['error']}")
@@ -342,8 +373,9 @@ def print_table(rows: list[dict], rates: dict) -> None:
         ratio = r["total_ms"] / r["limit_ms"] if r.get("limit_ms") else math.nan
         diff = r.get("max_diff_vs_reference", math.nan)
         composite, peak = r.get("composite_ms", math.nan), r["peak_increase_mb"]
+        steady = r.get("steady_peak_increase_mb", math.nan)
         print(f"{r['case']:>14} {r['renderer']:>14} {r['forward_ms']:9.1f} {r['total_ms']:9.1f} "
-              f"{composite:8.1f} {ratio:8.1f} {diff:9.2g} {peak:8.0f}")  # fmt: skip
+              f"{composite:8.1f} {ratio:8.1f} {diff:9.2g} {peak:8.0f} {steady:8.0f}")  # fmt: skip
 
 
 if __name__ == "__main__":

@@ -69,9 +69,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--sigma-px", type=float, default=1.5, help="as bench_renderer.py's")
-    parser.add_argument(
-        "--output", type=Path, default=ROOT / "benchmarks/results/compositing.json"
-    )
+    parser.add_argument("--output", type=Path, default=ROOT / "benchmarks/results/compositing.json")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     started = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
