@@ -30,7 +30,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from bench_renderer import _time_compositing, make_scene  # noqa: E402
 
-from dyngs.renderers import RENDERERS  # noqa: E402
+from dyngs.renderers.cpu_tile import CpuTileConfig  # noqa: E402
 from dyngs.tools.common import machine_info, source_commit  # noqa: E402
 from dyngs.types import Gaussians  # noqa: E402
 
@@ -40,7 +40,7 @@ CASES = [("10k-128", 10_000, 128), ("50k-256", 50_000, 256)]  # (name, Gaussians
 def time_case(n: int, size: int, sigma_px: float, threads: int, repeats: int) -> dict:
     """Render one scene forward and backward `repeats` + 1 times; medians of the timed ones."""
     spent = _time_compositing()
-    draw = RENDERERS.get("cpu-tile")(threads=threads).build()
+    draw = CpuTileConfig(threads=threads).build()
     scene, camera = make_scene(n, size, sigma_px)
     forward, backward = [], []
     for repeat in range(repeats + 1):
@@ -52,7 +52,7 @@ def time_case(n: int, size: int, sigma_px: float, threads: int, repeats: int) ->
         if repeat > 0:
             forward.append(spent[0])
             backward.append(spent[1])
-    work = draw.last_work
+    work = draw.last_work  # the forward kernel's counts, per tile: visits, pairs drawn
     visits, pairs = int(work[:, 0].sum()), int(work[:, 1].sum())
     forward_ms, backward_ms = statistics.median(forward) * 1e3, statistics.median(backward) * 1e3
     return {"forward_ms": forward_ms, "backward_ms": backward_ms, "visits": visits,
