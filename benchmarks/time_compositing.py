@@ -53,6 +53,7 @@ def time_case(n: int, size: int, sigma_px: float, threads: int, repeats: int) ->
             forward.append(spent[0])
             backward.append(spent[1])
     work = draw.last_work  # the forward kernel's counts, per tile: visits, pairs drawn
+    assert work is not None
     visits, pairs = int(work[:, 0].sum()), int(work[:, 1].sum())
     forward_ms, backward_ms = statistics.median(forward) * 1e3, statistics.median(backward) * 1e3
     return {"forward_ms": forward_ms, "backward_ms": backward_ms, "visits": visits,
