@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import copy
 import math
 from pathlib import Path
 
@@ -8,7 +9,7 @@ import torch
 from torch import nn
 
 from dyngs.engine import schedules
-from dyngs.engine.optim import OptimConfig, replace_rows, set_learning_rates
+from dyngs.engine.optim import OptimConfig, build_optimizer, replace_rows, set_learning_rates
 from tests.engine.helpers import tiny_trainer
 
 
@@ -99,3 +100,38 @@ def test_replace_rows_moves_and_zeroes_moments() -> None:
     assert torch.equal(state["exp_avg_sq"][2], torch.zeros(2))
     assert torch.equal(state["step"], before["step"])  # scalar state is shared, not per row
     assert old not in optimizer.state
+
+
+def test_the_fused_adam_follows_the_per_tensor_adam(tmp_path: Path) -> None:
+    """On the CPU the optimizer is PyTorch's fused Adam kernel; the per-tensor Adam
+    (`--optim.no-fused`) is its reference. Two copies of a model, one under each, given the
+    same gradients, learning rates and row surgery, end where the other does up to float32
+    rounding."""
+    trainer = tiny_trainer(tmp_path)
+    assert trainer.optimizer.defaults["fused"] is True
+    models = [trainer.model, copy.deepcopy(trainer.model)]
+    fused = build_optimizer(models[0], OptimConfig(), trainer.extent)
+    reference = build_optimizer(models[1], OptimConfig(fused=False), trainer.extent)
+    assert fused.defaults["fused"] and not reference.defaults["fused"]
+    generator = torch.Generator().manual_seed(0)
+    for step in range(30):
+        grads = [torch.randn(p.shape, generator=generator) for p in models[0].parameters()]
+        for model, optimizer in zip(models, (fused, reference), strict=True):
+            set_learning_rates(optimizer, step / 30)
+            for p, g in zip(model.parameters(), grads, strict=True):
+                p.grad = g.clone()
+            optimizer.step()
+            optimizer.zero_grad(set_to_none=True)
+        if step == 10:  # a densification's row surgery between steps
+            n = len(models[0].canonical)
+            source = torch.cat((torch.arange(n), torch.arange(3)))
+            fresh = torch.arange(len(source)) >= n
+            for model, optimizer in zip(models, (fused, reference), strict=True):
+                old = model.canonical.means
+                new = nn.Parameter(old.detach()[source].clone())
+                replace_rows(optimizer, old, new, source, fresh)
+                model.canonical.means = new
+    for (name, a), b in zip(models[0].named_parameters(), models[1].parameters(), strict=True):
+        assert a.shape == b.shape, name
+        scale = max(float(b.detach().abs().max()), 1e-6)
+        assert float((a - b).detach().abs().max()) <= 1e-5 * scale, name
