@@ -67,7 +67,12 @@ class DeformationHeadConfig:
 
 
 def _branch(width: int, out: int, generator: torch.Generator | None) -> nn.Sequential:
-    """ReLU, Linear(W, W), ReLU, Linear(W, out) with the last Linear all zero."""
+    """Linear(W, W), ReLU, Linear(W, out) with the last Linear all zero, after an identity.
+
+    Every branch reads ReLU(trunk), which `DeformationHead.forward` computes once for all
+    of them (each branch applying its own ReLU computed it, and its backward, once per
+    branch). The identity keeps the layers' indices, so the checkpoints' keys
+    (`means.1.weight`, …) stay those of the branches that began with a ReLU."""
     last = nn.Linear(width, out)
     # Zero weights and bias: every delta is exactly 0 at step 0, so training starts from the
     # canonical (static) scene. The last layer still gets a gradient at once (its input,
@@ -76,7 +81,7 @@ def _branch(width: int, out: int, generator: torch.Generator | None) -> nn.Seque
     nn.init.zeros_(last.weight)
     nn.init.zeros_(last.bias)
     return nn.Sequential(
-        nn.ReLU(), init_linear_(nn.Linear(width, width), generator), nn.ReLU(), last
+        nn.Identity(), init_linear_(nn.Linear(width, width), generator), nn.ReLU(), last
     )
 
 
@@ -119,7 +124,7 @@ class DeformationHead(nn.Module):
     def forward(self, features: Float[Tensor, "N C"]) -> Deltas:
         if features.ndim != 2 or features.shape[1] != self.in_dim:
             raise ValueError(f"features must be [N, {self.in_dim}], got {tuple(features.shape)}")
-        hidden = self.trunk(features)
+        hidden = torch.relu(self.trunk(features))  # every branch's first layer
         return Deltas(
             means=self.means(hidden) * self.position_scale,
             quats=self.quats(hidden) if self.quats is not None else None,

@@ -156,3 +156,41 @@ def test_field_and_head_start_static_then_learn() -> None:
         else:
             assert len(plane_grads) == len(list(field.parameters())) and min(plane_grads) > 0
         optimizer.step()
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_the_shared_relu_draws_what_a_relu_per_branch_draws(dtype: torch.dtype) -> None:
+    """The head applies ReLU(trunk) once for all branches; the reference applies it at the
+    head of each branch, as the head once did. Outputs and every parameter's and feature's
+    gradient agree to the bit, and the state_dict keys are the reference's."""
+    g = torch.Generator().manual_seed(3)
+    head = ALL.build(12, BOX, generator=g).to(dtype)
+    for branch in _branches(head).values():  # trained-looking: no zero last layer
+        nn.init.normal_(branch[3].weight, std=0.3, generator=g)
+        nn.init.normal_(branch[3].bias, std=0.3, generator=g)
+    features = torch.randn(300, 12, generator=g, dtype=dtype, requires_grad=True)
+
+    def reference(x: Tensor) -> dict[str, Tensor]:
+        hidden = head.trunk(x)
+        out = {name: b[3](b[2](b[1](torch.relu(hidden)))) for name, b in _branches(head).items()}
+        out["means"] = out["means"] * head.position_scale
+        out["opacities"] = out["opacities"].squeeze(-1)
+        return out
+
+    weights = {n: torch.randn(v.shape, generator=g, dtype=dtype)
+               for n, v in reference(features).items()}  # fmt: skip
+    results = []
+    for run in (lambda x: _present(head(x)), reference):
+        head.zero_grad(set_to_none=True)
+        features.grad = None
+        out = run(features)
+        sum((out[n] * weights[n]).sum() for n in NAMES).backward()
+        grads = {name: p.grad.clone() for name, p in head.named_parameters()}
+        results.append((out, grads, features.grad.clone()))
+    (out, grads, feature_grad), (ref_out, ref_grads, ref_feature_grad) = results
+    for name in NAMES:
+        assert torch.equal(out[name], ref_out[name]), name
+    for name in ref_grads:
+        assert torch.equal(grads[name], ref_grads[name]), name
+    assert torch.equal(feature_grad, ref_feature_grad)
+    assert "means.1.weight" in head.state_dict() and "means.3.bias" in head.state_dict()

@@ -1,0 +1,38 @@
+"""benchmarks/time_head.py: the head as built against its per-branch reference."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from tests.tools.conftest import load_benchmark
+
+
+def test_the_reference_is_the_head_and_the_report_says_so(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    time_head = load_benchmark("time_head")
+    generator = torch.Generator().manual_seed(1)
+    head = time_head.build_head(8, generator)
+    x = torch.randn(50, 8, generator=generator)
+    for a, b in zip(time_head.as_built(head, x), time_head.per_branch(head, x), strict=True):
+        assert torch.equal(a, b) and bool(a.abs().sum() > 0)
+
+    output = tmp_path / "head.json"
+    argv = ["time_head.py", "--rows", "40", "--features", "8", "--repeats", "2",
+            "--output", str(output)]  # fmt: skip
+    monkeypatch.setattr(sys, "argv", argv)
+    threads = torch.get_num_threads()
+    try:
+        time_head.main()
+    finally:
+        torch.set_num_threads(threads)
+    report = json.loads(output.read_text())
+    (result,) = report["results"]
+    assert result["rows"] == 40 and result["features"] == 8
+    assert set(result["forward_backward_ms"]) == {"as_built", "per_branch"}
+    assert all(ms > 0 for ms in result["forward_backward_ms"].values())
