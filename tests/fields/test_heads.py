@@ -158,6 +158,11 @@ def test_field_and_head_start_static_then_learn() -> None:
         optimizer.step()
 
 
+def _grad(tensor: Tensor) -> Tensor:
+    assert tensor.grad is not None
+    return tensor.grad.clone()
+
+
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_the_shared_relu_draws_what_a_relu_per_branch_draws(dtype: torch.dtype) -> None:
     """The head applies ReLU(trunk) once for all branches; the reference applies it at the
@@ -166,8 +171,10 @@ def test_the_shared_relu_draws_what_a_relu_per_branch_draws(dtype: torch.dtype) 
     g = torch.Generator().manual_seed(3)
     head = ALL.build(12, BOX, generator=g).to(dtype)
     for branch in _branches(head).values():  # trained-looking: no zero last layer
-        nn.init.normal_(branch[3].weight, std=0.3, generator=g)
-        nn.init.normal_(branch[3].bias, std=0.3, generator=g)
+        last = branch[3]
+        assert isinstance(last, nn.Linear)
+        nn.init.normal_(last.weight, std=0.3, generator=g)
+        nn.init.normal_(last.bias, std=0.3, generator=g)
     features = torch.randn(300, 12, generator=g, dtype=dtype, requires_grad=True)
 
     def reference(x: Tensor) -> dict[str, Tensor]:
@@ -184,9 +191,9 @@ def test_the_shared_relu_draws_what_a_relu_per_branch_draws(dtype: torch.dtype) 
         head.zero_grad(set_to_none=True)
         features.grad = None
         out = run(features)
-        sum((out[n] * weights[n]).sum() for n in NAMES).backward()
-        grads = {name: p.grad.clone() for name, p in head.named_parameters()}
-        results.append((out, grads, features.grad.clone()))
+        torch.stack([(out[n] * weights[n]).sum() for n in NAMES]).sum().backward()
+        grads = {name: _grad(p) for name, p in head.named_parameters()}
+        results.append((out, grads, _grad(features)))
     (out, grads, feature_grad), (ref_out, ref_grads, ref_feature_grad) = results
     for name in NAMES:
         assert torch.equal(out[name], ref_out[name]), name
