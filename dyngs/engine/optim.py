@@ -37,8 +37,12 @@ class OptimConfig:
     time_centers: float = 1e-4
     """τ of temporal opacity, in units of the sequence (Spacetime Gaussians, Li et al.
     2024, use 1e-4)."""
-    time_log_scales: float = 3e-2
-    """log σ of temporal opacity (Li et al. 2024: 3e-2)."""
+    time_log_scales: float = 3e-3
+    """log σ of temporal opacity: a tenth of Spacetime Gaussians' 3e-2 (Li et al. 2024).
+    At 3e-2 the lifetimes of the points carved per time window shrank to about one
+    frame's spacing on monocular sequences, so an object moving across a gap in the
+    training times was drawn as two sets of Gaussians cross-fading, faint in between
+    (mujoco-texture: +2.6 and +6.2 dB at 3e-3 over two seeds; docs/ACCURACY.md)."""
     grid: tuple[float, float] = (1.6e-2, 1.6e-4)
     """Feature planes of a plane-based field: 10× 4DGaussians' rates, because our schedules
     are about 10× shorter than theirs (docs/TRAINING.md)."""
