@@ -133,7 +133,12 @@ def project(
     a_d, c_d = a + guards.eps2d, c + guards.eps2d
     det = a_d * c_d - b * b
     if antialiased:
-        compensation = ((a * c - b * b).clamp_min(0) / det.clamp_min(1e-30)).sqrt()
+        ratio = (a * c - b * b).clamp_min(0) / det.clamp_min(1e-30)
+        # √'s gradient is infinite at 0, where a degenerate 2D covariance (or one whose
+        # determinant rounding took to 0) puts the compensation: there it gets none, as in
+        # the compiled projection, instead of 0 · ∞ = NaN in every parameter behind it.
+        positive = ratio > 0
+        compensation = torch.where(positive, torch.where(positive, ratio, 1.0).sqrt(), 0.0)
         opacities = opacities * compensation
     # Finite float64 parameters can still overflow here (scales beyond ~1e120 make det
     # inf, and then a conic entry is inf / inf = NaN). Such rows are culled, as the oracle

@@ -18,6 +18,7 @@ from dyngs.renderers.cpu_reference import (
     rasterize,
     zero_below,
 )
+from dyngs.renderers.cpu_tile import CpuTileConfig
 from dyngs.renderers.stages import project
 from dyngs.types import Camera, Gaussians
 from tests.renderers.oracle import render_oracle
@@ -334,6 +335,32 @@ def test_chunks_cover_every_busy_tile_once_within_budget(seed: int) -> None:
         assert stop - start == 1 or (stop - start) * counts[start] <= budget
         # No tile is padded to more than 1/_CHUNK_FILL times its own count.
         assert counts[stop - 1] >= cpu_reference._CHUNK_FILL * counts[start]
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_antialiasing_a_degenerate_covariance_keeps_every_gradient_finite(
+    dtype: torch.dtype,
+) -> None:
+    """A Gaussian with zero scales has a 2D covariance of 0 before the dilation, so its
+    compensation √(det Σ / det(Σ + 0.3 I)) is √0, whose derivative is infinite: it must
+    get no gradient (and so no NaN) rather than 0 · ∞, as in the compiled projection."""
+    gaussians, camera, background = random_scene(3, 40, 31, 23, dtype)
+    scales = gaussians.scales.clone()
+    scales[:5] = 0.0  # degenerate: drawn as the dilation alone, compensated to nothing
+    gaussians = replace(gaussians, scales=scales)
+    for config in (CpuReferenceConfig(antialiased=True), CpuTileConfig(antialiased=True)):
+        renderer = config.build()
+        leaves = {
+            name: getattr(gaussians, name).detach().clone().requires_grad_(True)
+            for name in ("means", "quats", "scales", "opacities", "colors")
+        }
+        out = renderer(replace(gaussians, **leaves), camera, background)
+        (out.rgb * torch.linspace(0.1, 1.0, 3, dtype=dtype)).sum().backward()
+        assert float(out.alpha.amax()) > 0.1  # the other Gaussians are drawn
+        for name, leaf in leaves.items():
+            assert leaf.grad is not None and bool(leaf.grad.isfinite().all()), name
+            if name in ("means", "quats", "scales"):
+                assert float(leaf.grad[:5].abs().max()) == 0.0, name
 
 
 def test_far_below_threshold_pairs_are_dropped_exactly() -> None:
