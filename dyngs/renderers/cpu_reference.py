@@ -60,8 +60,11 @@ class CpuReferenceConfig:
     """Tile edge in pixels; Gaussians are binned and depth-sorted per tile. The image does not
     depend on it. None chooses 4, 8 or 16 per frame, whichever `choose_tile_size` expects
     to be fastest for the sizes of that frame's Gaussians (docs/RENDERER.md)."""
-    antialiased: bool = False
-    """Mip-Splatting's 2D filter: scale opacity by √(det Σ / det(Σ + 0.3 I)) (Yu et al. 2024)."""
+    antialiased: bool = True
+    """Mip-Splatting's 2D filter (Yu et al. 2024): scale opacity by √(det Σ / det(Σ + 0.3 I)),
+    so that the 0.3 px² dilation widens a small Gaussian without adding to its mass, as a
+    pixel that integrates light over its area sees it. On by default (docs/ACCURACY.md);
+    `--renderer.no-antialiased` draws the dilated Gaussians at full opacity, as 3DGS does."""
     chunk_elements: int = 1 << 20
     """Gaussian–pixel pairs composited per chunk; bounds the size of each temporary."""
 

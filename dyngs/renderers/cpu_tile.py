@@ -61,8 +61,11 @@ class CpuTileConfig:
     stops when all its pixels have). The image does not depend on it."""
     threads: int | None = None
     """Threads the kernels use; None: PyTorch's (`torch.get_num_threads()`)."""
-    antialiased: bool = False
-    """Mip-Splatting's 2D filter: scale opacity by √(det Σ / det(Σ + 0.3 I)) (Yu et al. 2024)."""
+    antialiased: bool = True
+    """Mip-Splatting's 2D filter (Yu et al. 2024): scale opacity by √(det Σ / det(Σ + 0.3 I)),
+    so that the 0.3 px² dilation widens a small Gaussian without adding to its mass, as a
+    pixel that integrates light over its area sees it. On by default (docs/ACCURACY.md);
+    `--renderer.no-antialiased` draws the dilated Gaussians at full opacity, as 3DGS does."""
 
     def __post_init__(self) -> None:
         if self.tile_size < 1:

@@ -49,8 +49,11 @@ class CudaTileConfig:
 
     tile_size: int = 16
     """Tile edge in pixels."""
-    antialiased: bool = False
-    """Mip-Splatting's 2D filter: scale opacity by √(det Σ / det(Σ + 0.3 I))."""
+    antialiased: bool = True
+    """Mip-Splatting's 2D filter (Yu et al. 2024): scale opacity by √(det Σ / det(Σ + 0.3 I)),
+    so that the 0.3 px² dilation widens a small Gaussian without adding to its mass, as a
+    pixel that integrates light over its area sees it. On by default (docs/ACCURACY.md);
+    `--renderer.no-antialiased` draws the dilated Gaussians at full opacity, as 3DGS does."""
     packed: bool = False
     """gsplat's packed mode: less memory for large scenes, a little slower for small ones."""
     absgrad: bool = True

@@ -28,6 +28,8 @@ DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 
 # Non-square images whose sides are not multiples of 16 (or of 8).
 SIZES = [(61, 37), (45, 83), (100, 27)]
+PLAIN = CpuReferenceConfig(antialiased=False)
+"""The plain rule (3DGS's, no opacity compensation), which the oracle draws by default."""
 
 
 def _max_abs(a: torch.Tensor, b: torch.Tensor, where: torch.Tensor | None = None) -> float:
@@ -101,7 +103,7 @@ def test_scenes_around_and_behind_the_camera(spread: float) -> None:
     camera = random_camera(gen, 53, 41)
     gaussians = random_gaussians(gen, 500, spread=spread)
     background = torch.tensor([0.2, 0.4, 0.6], dtype=torch.float64)
-    out = CpuReferenceRenderer()(gaussians, camera, background)
+    out = CpuReferenceRenderer(PLAIN)(gaussians, camera, background)
     ref = render_oracle(gaussians, camera, background)
     for got, want in ((out.rgb, ref.rgb), (out.alpha, ref.alpha), (out.depth, ref.depth)):
         assert _max_abs(got, want) <= 1e-9
@@ -109,7 +111,7 @@ def test_scenes_around_and_behind_the_camera(spread: float) -> None:
 
 def test_output_shapes_and_screen_data() -> None:
     gaussians, camera, background = random_scene(3, 200, 45, 29, torch.float32)
-    out = CpuReferenceRenderer()(gaussians, camera, background)
+    out = CpuReferenceRenderer(PLAIN)(gaussians, camera, background)
     n = len(gaussians)
     assert out.alpha.shape == (29, 45, 1) and out.depth.shape == (29, 45, 1)
     assert out.means2d.shape == (n, 2) and out.radii.shape == (n, 2) and out.visible.shape == (n,)
@@ -178,7 +180,7 @@ def test_gradcheck_screen_space_means() -> None:
 def test_means2d_receive_gradients() -> None:
     gaussians, camera, background = random_scene(5, 200, 40, 30, torch.float32)
     gaussians.means.requires_grad_(True)
-    out = CpuReferenceRenderer()(gaussians, camera, background)
+    out = CpuReferenceRenderer(PLAIN)(gaussians, camera, background)
     out.rgb.sum().backward()
     grad = out.means2d.grad
     assert grad is not None and grad.shape == (len(gaussians), 2)
@@ -206,7 +208,7 @@ def test_one_gaussian_centred_on_a_pixel(dtype: torch.dtype) -> None:
     camera = Camera(50.0, 50.0, 6.5, 4.5, torch.eye(4, dtype=dtype), 13, 9)
     g = _single(z=2.0, scale=0.04, opacity=0.7, color=[1.0, 0.5, 0.25], dtype=dtype)
     background = torch.tensor([0.0, 0.0, 1.0], dtype=dtype)
-    out = CpuReferenceRenderer()(g, camera, background)
+    out = CpuReferenceRenderer(PLAIN)(g, camera, background)
 
     tol = 1e-12 if dtype == torch.float64 else 1e-6
     assert abs(float(out.alpha[4, 6, 0]) - 0.7) < tol
@@ -235,7 +237,7 @@ def test_two_overlapping_gaussians_composite_in_depth_order() -> None:
             for k in ("means", "quats", "scales", "opacities", "colors")
         )
         g = Gaussians(means, quats, scales, opacities, colors)
-        out = CpuReferenceRenderer()(g, camera, background)
+        out = CpuReferenceRenderer(PLAIN)(g, camera, background)
         assert torch.allclose(out.rgb[2, 2], expected_rgb, atol=1e-12)
         assert abs(float(out.alpha[2, 2, 0]) - expected_alpha) < 1e-12
         assert abs(float(out.depth[2, 2, 0]) - expected_depth) < 1e-12
@@ -247,7 +249,7 @@ def test_gaussian_behind_the_camera_draws_nothing_and_gets_no_gradient() -> None
     for name in ("means", "quats", "scales", "opacities", "colors"):
         getattr(g, name).requires_grad_(True)
     background = torch.tensor([0.3, 0.3, 0.3], dtype=torch.float64)
-    out = CpuReferenceRenderer()(g, camera, background)
+    out = CpuReferenceRenderer(PLAIN)(g, camera, background)
     assert bool((out.rgb == background).all())
     assert bool((out.alpha == 0).all()) and bool((out.depth == 0).all())
     assert not bool(out.visible[0]) and out.radii[0].tolist() == [0, 0]
@@ -262,7 +264,7 @@ def test_gaussian_behind_the_camera_draws_nothing_and_gets_no_gradient() -> None
 def test_devices_and_dtypes(device: str, dtype: torch.dtype) -> None:
     gaussians, camera, background = random_scene(11, 150, 33, 21, dtype, sh_degree=2)
     moved = gaussians.to(device)
-    out = CpuReferenceRenderer()(moved, camera.to(device), background.to(device))
+    out = CpuReferenceRenderer(PLAIN)(moved, camera.to(device), background.to(device))
     assert out.rgb.device.type == device and out.rgb.dtype == dtype
     ref = render_oracle(gaussians, camera, background)
     tol = 1e-9 if dtype == torch.float64 else 1e-5
@@ -380,7 +382,7 @@ def test_far_below_threshold_pairs_are_dropped_exactly() -> None:
             torch.ones(1, 3, dtype=torch.float64),
             None,
         )
-        return float(CpuReferenceRenderer()(g, camera, background).alpha.max())
+        return float(CpuReferenceRenderer(PLAIN)(g, camera, background).alpha.max())
 
     threshold = Guards().alpha_min
     assert peak_alpha(0.5) == pytest.approx(0.5, rel=1e-12)

@@ -23,7 +23,9 @@ def test_counts_match_the_renderers_binning(tiny_run: Path) -> None:
     with torch.no_grad():
         for view in run.data().views("test"):
             gaussians = run.model.at(view.time)
-            screen = stages.project(gaussians, view.camera, renderer.guards)
+            screen = stages.project(
+                gaussians, view.camera, renderer.guards, renderer.config.antialiased
+            )
             w, h = view.camera.width, view.camera.height
             tile = renderer.config.tile_size or cpu_reference.choose_tile_size(screen, w, h)
             bins = stages.bin_tiles(screen, w, h, tile)
