@@ -317,11 +317,12 @@ class HexPlaneField(nn.Module):
 
         with torch.no_grad():
             for s, ranges in enumerate(nodes):
-                lo, hi = self.extent[s].double()
+                # Node arithmetic on the CPU in float64, whatever device the field is on.
+                lo, hi = self.extent[s].double().cpu()
                 sizes = torch.tensor(self._spatial_sizes(s), dtype=torch.float64)
                 kept = torch.tensor(ranges, dtype=torch.float64).T  # [2, 3]: first, last
                 step = (hi - lo) / (sizes - 1)
-                self.extent[s] = lo + step * kept
+                self.extent[s] = (lo + step * kept).to(self.extent)
                 self._cropped[s] = bool((self.extent[s].abs() != 1.0).any())
             self._assemble(cropped_planes(list(self.grids)))
         return crop

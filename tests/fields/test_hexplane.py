@@ -391,6 +391,28 @@ def test_device(device: str) -> None:
     assert torch.allclose(got.cpu(), expected, atol=1e-6)
 
 
+@pytest.mark.parametrize("device", DEVICES)
+def test_crop_keeps_the_values_inside_on_every_device(device: str) -> None:
+    # Cropping ends every training run; on a GPU it once mixed a CUDA extent with CPU node
+    # arithmetic and failed there alone. The cropped field must still agree with the full one
+    # at the points it was cropped to, on the field's own device.
+    g = torch.Generator().manual_seed(16)
+    field = HexPlaneConfig(resolution=(9, 9, 9, 4), features=4).build(BOX)
+    _perturb_time_planes(field, g)
+    with torch.no_grad():
+        for plane in field.planes().spatial:
+            plane.add_(0.3 * torch.randn(plane.shape, generator=g, dtype=plane.dtype))
+    lower, size = torch.tensor(BOX.lower), torch.tensor(BOX.size)
+    inner = lower + size * (0.3 + 0.3 * torch.rand(40, 3, generator=g))  # a middle sub-box
+    t = torch.rand(40, 1, generator=g)
+    expected = field(inner, t)
+    moved = field.to(device)
+    assert moved.crop_to(inner.to(device)) is not None
+    assert moved.extent.device.type == torch.device(device).type
+    got = moved(inner.to(device), t.to(device))
+    torch.testing.assert_close(got.cpu(), expected, atol=1e-5, rtol=1e-5)
+
+
 @pytest.mark.parametrize(
     "kwargs",
     [
