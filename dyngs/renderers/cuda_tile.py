@@ -88,6 +88,8 @@ class CudaTileRenderer:
         `ContributionRenderer`: a run with it prunes by opacity and size alone, and says so."""
         g = gaussians
         ready = prepare(g, camera)
+        if len(g) == 0:
+            return self._background_only(g, camera, background, ready)
         inputs = self._inputs(g, camera, ready)
         rgbd, alpha, meta = self._rasterization(
             **inputs,
@@ -116,6 +118,28 @@ class CudaTileRenderer:
             means2d=means2d,
             radii=torch.where(visible[:, None], radii, 0).int(),
             visible=visible,
+            num_nonfinite=ready.num_nonfinite,
+        )
+
+    @staticmethod
+    def _background_only(
+        g: Gaussians, camera: Camera, background: Tensor, ready: Prepared
+    ) -> RenderOutput:
+        """An empty scene, drawn without gsplat: its projection kernel stops the whole
+        process (SIGFPE) when handed zero Gaussians. The outputs stay in the autograd graph
+        of the (empty) parameters, as any other scene's do, so backward runs as usual."""
+        # A sum over zero rows is exactly 0: this adds nothing but the graph's edges.
+        tie = sum(t.sum() for t in (g.means, g.quats, g.scales, g.opacities, g.colors))
+        shape = (camera.height, camera.width)
+        alpha = g.means.new_zeros(*shape, 1) + tie
+        rgb = background.to(alpha).expand(*shape, 3) + tie
+        return RenderOutput(
+            rgb=rgb,
+            alpha=alpha,
+            depth=alpha.clone(),
+            means2d=g.means.new_zeros(0, 2),
+            radii=torch.zeros(0, 2, dtype=torch.int32, device=g.means.device),
+            visible=torch.zeros(0, dtype=torch.bool, device=g.means.device),
             num_nonfinite=ready.num_nonfinite,
         )
 

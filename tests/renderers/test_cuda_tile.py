@@ -111,3 +111,26 @@ def test_gradients_match_the_reference(seed: int) -> None:
         relative = ((fast - slow).abs() / scale).flatten()
         # Relative 1e-3 for all but a bounded share (boundary-band pairs), stated here: 2 %.
         assert float((relative > 1e-3).float().mean()) <= 0.02, name
+
+
+def test_an_empty_scene_is_the_background_without_calling_gsplat() -> None:
+    # gsplat's projection stops the process (SIGFPE, seen on an H200) when handed zero
+    # Gaussians, so cuda-tile draws an empty scene itself. That path needs no GPU: it must
+    # equal cpu-reference's empty image and keep backward running.
+    from dyngs.renderers.cuda_tile import CudaTileRenderer
+    from dyngs.renderers.stages import prepare
+
+    full, camera, background = random_scene(7, 5, 13, 9, torch.float32, sh_degree=1)
+    leaves = [
+        t[:0].clone().requires_grad_(True)
+        for t in (full.means, full.quats, full.scales, full.opacities, full.colors)
+    ]
+    empty = Gaussians(*leaves, sh_degree=1)
+    got = CudaTileRenderer._background_only(empty, camera, background, prepare(empty, camera))
+    want = CpuReferenceConfig().build()(empty, camera, background)
+    for name in ("rgb", "alpha", "depth"):
+        assert torch.equal(getattr(got, name).detach(), getattr(want, name).detach()), name
+    assert got.means2d.shape == (0, 2) and got.radii.shape == (0, 2) and got.visible.shape == (0,)
+    assert int(got.num_nonfinite) == 0
+    (got.rgb.sum() + got.alpha.sum() + got.depth.sum()).backward()
+    assert all(leaf.grad is not None and leaf.grad.numel() == 0 for leaf in leaves)
