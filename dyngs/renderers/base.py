@@ -42,7 +42,9 @@ class Guards:
     """Added to the diagonal of every 2D covariance, in px² (the low-pass filter of Kerbl et al.
     2023)."""
     off_axis: float = 1.3
-    """The EWA Jacobian sees x/z and y/z clamped to ±off_axis·tan(fov/2) (Kerbl et al. 2023)."""
+    """The EWA Jacobian sees x/z and y/z clamped to the image's field of view widened by
+    (off_axis − 1)·tan(fov/2) on each side: ±1.3·tan(fov/2) for a centred principal point, as
+    in Kerbl et al. 2023, and the bounds gsplat uses for any principal point."""
     alpha_min: float = 1.0 / 255.0
     """A Gaussian–pixel pair whose α is below this is skipped."""
     alpha_max: float = 0.99

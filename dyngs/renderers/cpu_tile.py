@@ -41,6 +41,7 @@ from dyngs.renderers.stages import (
     TileBins,
     depth_order,
     finish_image,
+    off_axis_limits,
 )
 from dyngs.sh import eval_sh
 from dyngs.types import Camera, Gaussians
@@ -265,12 +266,11 @@ class _View:
     ) -> None:
         self.threads = threads
         fx, fy = camera.fx, camera.fy
-        lim_x = guards.off_axis * 0.5 * camera.width / fx
-        lim_y = guards.off_axis * 0.5 * camera.height / fy
+        left, right, top, bottom = off_axis_limits(camera, guards)
         self.rotation = np.ascontiguousarray(w2c[:3, :3].numpy())
         self.translation = np.ascontiguousarray(w2c[:3, 3].numpy())
         self.intrinsics = np.array(
-            [fx, fy, camera.cx, camera.cy, lim_x, lim_y, camera.width, camera.height],
+            [fx, fy, camera.cx, camera.cy, left, top, camera.width, camera.height, right, bottom],
             dtype=np.float64,
         )
         self.limits = np.array(

@@ -70,9 +70,9 @@ def _jacobian_rows(
     px: float, py: float, z: float, intrinsics: np.ndarray, rot: np.ndarray
 ) -> tuple:  # pragma: no cover - compiled
     """T = J R (2×3, row-major) with the off-axis clamp in J, and the clamped (tx, ty)."""
-    fx, fy, limx, limy = intrinsics[0], intrinsics[1], intrinsics[4], intrinsics[5]
-    tx = min(max(px / z, -limx), limx) * z
-    ty = min(max(py / z, -limy), limy) * z
+    fx, fy = intrinsics[0], intrinsics[1]
+    tx = min(max(px / z, -intrinsics[4]), intrinsics[8]) * z
+    ty = min(max(py / z, -intrinsics[5]), intrinsics[9]) * z
     j00, j02 = fx / z, -fx * tx / (z * z)
     j11, j12 = fy / z, -fy * ty / (z * z)
     t = (
@@ -133,8 +133,9 @@ def project_forward(
 ) -> None:  # pragma: no cover - compiled
     """Fill `out` [N, OUT_COLUMNS], `valid` and `visible` (see the module docstring).
     scene: (means, quaternions, scales, opacities, finite rows); view: (camera rotation,
-    translation, intrinsics, limits), with intrinsics fx, fy, cx, cy, the x and y off-axis
-    limits, width, height, and limits near, far, eps2d, alpha_min, the quaternion eps and
+    translation, intrinsics, limits), with intrinsics fx, fy, cx, cy, the left and top
+    off-axis limits, width, height, the right and bottom off-axis limits (`off_axis_limits`),
+    and limits near, far, eps2d, alpha_min, the quaternion eps and
     the extent margins (relative, absolute)."""
     for i in prange(scene[0].shape[0]):
         _forward_one(i, scene, view, antialiased, out, valid, visible)
@@ -329,21 +330,22 @@ def _point_backward(
     """∂L/∂(camera-space point) from J (with its off-axis clamp: t = clamp(x/z)·z), the
     2D mean (fx x/z + cx, fy y/z + cy) and the depth; z as drawn (the caller drops its
     gradient where it was replaced)."""
-    fx, fy, limx, limy = intrinsics[0], intrinsics[1], intrinsics[4], intrinsics[5]
+    fx, fy = intrinsics[0], intrinsics[1]
+    left, top, right, bottom = intrinsics[4], intrinsics[5], intrinsics[8], intrinsics[9]
     g_j00, g_j02, g_j11, g_j12 = g_j
     z2, z3 = z * z, z * z * z
     g_z = -g_j00 * fx / z2 - g_j11 * fy / z2 + g_j02 * 2 * fx * tx / z3 + g_j12 * 2 * fy * ty / z3
     g_tx, g_ty = -g_j02 * fx / z2, -g_j12 * fy / z2
     g_px, g_py = 0.0, 0.0
     rx, ry = px / z, py / z
-    if -limx <= rx <= limx:
+    if -left <= rx <= right:
         g_px += g_tx
     else:
-        g_z += g_tx * min(max(rx, -limx), limx)
-    if -limy <= ry <= limy:
+        g_z += g_tx * min(max(rx, -left), right)
+    if -top <= ry <= bottom:
         g_py += g_ty
     else:
-        g_z += g_ty * min(max(ry, -limy), limy)
+        g_z += g_ty * min(max(ry, -top), bottom)
     g_u, g_v = upstream[i, 0], upstream[i, 1]
     g_px += g_u * fx / z
     g_py += g_v * fy / z

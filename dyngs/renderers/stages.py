@@ -177,6 +177,23 @@ def project(
     )
 
 
+def off_axis_limits(camera: Camera, guards: Guards) -> tuple[float, float, float, float]:
+    """How far x/z may go left and right, and y/z up and down, in the EWA Jacobian: to the
+    image's edges and (off_axis − 1)·tan(fov/2) beyond them on each side.
+
+    Kerbl et al. 2023 clamp at ±1.3·tan(fov/2) about the optical axis. Measured from the
+    image's edges, as gsplat does, the bounds are the same for a centred principal point
+    and follow an off-centre one, so every renderer here draws what gsplat draws."""
+    margin_x = (guards.off_axis - 1) * 0.5 * camera.width / camera.fx
+    margin_y = (guards.off_axis - 1) * 0.5 * camera.height / camera.fy
+    return (
+        camera.cx / camera.fx + margin_x,
+        (camera.width - camera.cx) / camera.fx + margin_x,
+        camera.cy / camera.fy + margin_y,
+        (camera.height - camera.cy) / camera.fy + margin_y,
+    )
+
+
 def covariance_2d(
     x: Float[Tensor, " N"],
     y: Float[Tensor, " N"],
@@ -190,12 +207,11 @@ def covariance_2d(
     Culled rows' z must already be replaced, so that nothing divides by a tiny or negative
     depth."""
     fx, fy = camera.fx, camera.fy
-    # The Jacobian of the perspective map sees the centre clamped to 1.3× the half field of
-    # view, so Gaussians far off-axis do not get enormous, unstable footprints.
-    lim_x = guards.off_axis * 0.5 * camera.width / fx
-    lim_y = guards.off_axis * 0.5 * camera.height / fy
-    tx = (x / z).clamp(-lim_x, lim_x) * z
-    ty = (y / z).clamp(-lim_y, lim_y) * z
+    # The Jacobian of the perspective map sees the centre clamped to a little beyond the
+    # image, so Gaussians far off-axis do not get enormous, unstable footprints.
+    left, right, top, bottom = off_axis_limits(camera, guards)
+    tx = (x / z).clamp(-left, right) * z
+    ty = (y / z).clamp(-top, bottom) * z
     zeros = torch.zeros_like(z)
     jac = torch.stack(
         (fx / z, zeros, -fx * tx / (z * z), zeros, fy / z, -fy * ty / (z * z)), dim=-1

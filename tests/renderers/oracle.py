@@ -15,7 +15,7 @@ from torch import Tensor
 from dyngs.types import Camera, Gaussians
 
 EPS2D = 0.3  # px² added to every 2D covariance
-OFF_AXIS = 1.3  # x/z, y/z clamp in the EWA Jacobian, in units of tan(fov/2)
+OFF_AXIS = 1.3  # EWA Jacobian clamp: the image widened by 0.3·tan(fov/2) on each side
 ALPHA_MIN = 1.0 / 255.0  # pairs with α below this are skipped
 ALPHA_MAX = 0.99  # α is clamped to at most this
 T_MIN = 1e-4  # a pixel stops before its transmittance would fall below this
@@ -142,10 +142,14 @@ def render_oracle(
     v = camera.fy * y / zs + camera.cy
 
     # 6. EWA Jacobian with the off-axis clamp; 2D covariance J W Σ Wᵀ Jᵀ.
-    lim_x = OFF_AXIS * 0.5 * camera.width / camera.fx
-    lim_y = OFF_AXIS * 0.5 * camera.height / camera.fy
-    xc = (x / zs).clamp(-lim_x, lim_x) * zs
-    yc = (y / zs).clamp(-lim_y, lim_y) * zs
+    # Bounds: the image's edges widened by (OFF_AXIS − 1)·tan(fov/2) on each side.
+    tan_x, tan_y = 0.5 * camera.width / camera.fx, 0.5 * camera.height / camera.fy
+    left = camera.cx / camera.fx + (OFF_AXIS - 1) * tan_x
+    right = (camera.width - camera.cx) / camera.fx + (OFF_AXIS - 1) * tan_x
+    top = camera.cy / camera.fy + (OFF_AXIS - 1) * tan_y
+    bottom = (camera.height - camera.cy) / camera.fy + (OFF_AXIS - 1) * tan_y
+    xc = (x / zs).clamp(-left, right) * zs
+    yc = (y / zs).clamp(-top, bottom) * zs
     jac = torch.zeros(n, 2, 3, dtype=torch.float64, device=dev)
     jac[:, 0, 0], jac[:, 0, 2] = camera.fx / zs, -camera.fx * xc / zs**2
     jac[:, 1, 1], jac[:, 1, 2] = camera.fy / zs, -camera.fy * yc / zs**2

@@ -467,3 +467,19 @@ def test_small_gaussians_get_small_tiles_and_large_ones_large_tiles(
 def test_tile_size_must_be_positive() -> None:
     with pytest.raises(ConfigError, match="tile-size must be ≥ 1"):
         CpuReferenceConfig(tile_size=0)
+
+
+@pytest.mark.parametrize("cx", [32.0, 20.0, 50.5])
+def test_off_axis_clamp_follows_the_image_edges(cx: float) -> None:
+    # The EWA Jacobian's clamp reaches 0.3·tan(fov/2) past each edge of the image, wherever
+    # the principal point is (gsplat's bounds); for a centred one that is Kerbl et al.'s
+    # ±1.3·tan(fov/2) about the axis.
+    width, height, fx, fy = 64, 48, 80.0, 70.0
+    camera = Camera(fx, fy, cx, 24.0, torch.eye(4, dtype=torch.float64), width, height)
+    left, right, top, bottom = stages.off_axis_limits(camera, Guards())
+    margin_px = 0.3 * width / 2  # the margin in pixels: tan(fov/2)·fx = width / 2
+    assert cx - fx * left == pytest.approx(-margin_px)
+    assert cx + fx * right == pytest.approx(width + margin_px)
+    assert top == pytest.approx(bottom) == pytest.approx(1.3 * 0.5 * height / fy)
+    if cx == width / 2:
+        assert left == pytest.approx(right) == pytest.approx(1.3 * 0.5 * width / fx)
