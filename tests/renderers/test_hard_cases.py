@@ -446,9 +446,13 @@ def test_nan_or_inf_in_a_parameter_is_culled_counted_and_never_propagated(
     for out_name in ("rgb", "alpha", "depth"):
         got, want = getattr(drawn.out, out_name), getattr(clean.out, out_name)
         assert float((got - want).abs().max()) <= tol, out_name
+    # gsplat sums each Gaussian's gradient over its pixels with atomic adds, in an order that
+    # the other rows change: float32 sums then round apart by a few parts in a million
+    # (2e-6 measured on an H200). Every other renderer sums in a fixed order.
+    grad_tol = 1e-5 if setup.renderer == "cuda-tile" else tol
     for k in PARAMS:
         got, want = drawn.grads[k][kept], clean.grads[k]
-        assert float((got - want).abs().max()) <= tol * max(1.0, float(want.abs().max())), k
+        assert float((got - want).abs().max()) <= grad_tol * max(1.0, float(want.abs().max())), k
     _assert_matches_brute_force(setup, drawn)
 
 
