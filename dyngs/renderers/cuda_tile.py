@@ -9,6 +9,9 @@ How our guards map onto gsplat (v1.4+):
   because gsplat culls only z < near where the guard table culls z ≤ near; 0.3 px² dilation →
   `eps2d`; Mip-Splatting compensation → `rasterize_mode="antialiased"`.
 - A zero quaternion is handed over as the identity (gsplat would normalise it to NaN).
+- Off-axis clamp in the EWA Jacobian: the shared rule (`stages.off_axis_limits`) is gsplat's
+  own, the image's edges plus 0.3·tan(fov/2), so both draw the same footprints off screen.
+- An empty scene never reaches gsplat, whose projection stops the process (SIGFPE) on it.
 - α clamp: gsplat clamps α at 0.999 where we clamp at 0.99. Opacities are clamped to
   0.99 before the call, so α ≤ 0.99 everywhere; the two rules then differ only for
   Gaussians with opacity > 0.99, by at most 1 % of their α near their centre.
