@@ -121,11 +121,11 @@ def test_an_empty_scene_is_the_background_without_calling_gsplat() -> None:
     from dyngs.renderers.stages import prepare
 
     full, camera, background = random_scene(7, 5, 13, 9, torch.float32, sh_degree=1)
-    leaves = [
+    means, quats, scales, opacities, colors = leaves = [
         t[:0].clone().requires_grad_(True)
         for t in (full.means, full.quats, full.scales, full.opacities, full.colors)
     ]
-    empty = Gaussians(*leaves, sh_degree=1)
+    empty = Gaussians(means, quats, scales, opacities, colors, sh_degree=1)
     got = CudaTileRenderer._background_only(empty, camera, background, prepare(empty, camera))
     want = CpuReferenceConfig().build()(empty, camera, background)
     for name in ("rgb", "alpha", "depth"):
