@@ -79,6 +79,10 @@ class RenderOutput:
     """Each Gaussian's blending weight αT summed over the image's pixels (no gradient): how
     much of the picture it makes, for pruning by importance. Measured only by
     `ContributionRenderer.with_contribution`; None otherwise."""
+    means2d_absgrad: Float[Tensor, "N 2"] | None = None
+    """Σ over pixels of |∂L/∂means2d| per axis, filled in by backward (AbsGS, Ye et al. 2024):
+    unlike the gradient, per-pixel terms of opposite sign do not cancel, so a Gaussian
+    blurring fine detail still asks to be split. None where the renderer cannot measure it."""
 
 
 class Renderer(Protocol):

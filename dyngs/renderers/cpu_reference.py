@@ -28,6 +28,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 import torch.nn.functional as F
@@ -103,6 +104,11 @@ class CpuReferenceRenderer:
             if contribution
             else None
         )
+        absgrad = (
+            torch.zeros(len(gaussians), 2, dtype=GEOMETRY_DTYPE, device=screen.colors.device)
+            if screen.means2d.requires_grad
+            else None
+        )
         rgb, alpha, depth = rasterize(
             screen,
             camera.width,
@@ -112,6 +118,7 @@ class CpuReferenceRenderer:
             tile_size=self.config.tile_size,
             chunk_elements=self.config.chunk_elements,
             contribution=weights,
+            absgrad=absgrad,
         )
         return RenderOutput(
             rgb=rgb,
@@ -122,6 +129,7 @@ class CpuReferenceRenderer:
             visible=screen.visible,
             num_nonfinite=screen.num_nonfinite,
             contribution=weights,
+            means2d_absgrad=absgrad,
         )
 
     def with_contribution(
@@ -189,15 +197,16 @@ def rasterize(
     tile_size: int | None = None,
     chunk_elements: int = 1 << 20,
     contribution: Float[Tensor, " N"] | None = None,
+    absgrad: Float[Tensor, "N 2"] | None = None,
 ) -> tuple[Float[Tensor, "H W 3"], Float[Tensor, "H W 1"], Float[Tensor, "H W 1"]]:
     """Composite projected Gaussians front to back; returns rgb, alpha and expected depth.
 
     When `contribution` is given, each Gaussian's blending weights summed over the pixels
-    are added to it in place (without gradient). `tile_size` None: `choose_tile_size`.
+    are added to it in place (without gradient); when `absgrad` is, backward adds Σ over
+    pixels of |∂L/∂means2d| per axis to it. `tile_size` None: `choose_tile_size`.
     """
     guards = guards or Guards()
-    if tile_size is None:
-        tile_size = choose_tile_size(screen, width, height)
+    tile_size = tile_size or choose_tile_size(screen, width, height)
     dtype, device = screen.colors.dtype, screen.colors.device
     tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
     pixels = tile_size * tile_size
@@ -226,6 +235,7 @@ def rasterize(
             _composite_chunk(
                 screen, bins, chunk, counts[start], tiles_x, tile_size, basis,
                 log_opacity, pad_row, blended, guards, contribution, (width, height),
+                absgrad,
             )
         )  # fmt: skip
         done_tiles.append(chunk)
@@ -309,6 +319,7 @@ def _composite_chunk(
     guards: Guards,
     contribution: Float[Tensor, " N"] | None = None,
     image_size: tuple[int, int] = (0, 0),
+    absgrad: Float[Tensor, "N 2"] | None = None,
 ) -> Float[Tensor, "C P F"]:
     """Front-to-back compositing of every pixel of `tiles`, each padded to K Gaussians."""
     slot = torch.arange(depth_complexity, device=tiles.device)
@@ -323,15 +334,17 @@ def _composite_chunk(
         )
         + tile_size / 2
     )
-    rows = _exponent_rows(
-        gather(screen.means2d, gid) - centre[:, None],
-        gather(screen.conics, gid),
-        gather(log_opacity, gid),
-    )
+    means = gather(screen.means2d, gid) - centre[:, None]
+    conics = gather(screen.conics, gid)
+    rows = _exponent_rows(means, conics, gather(log_opacity, gid))
     rows = torch.where(real[..., None], rows, pad_row)
     # Pixels × Gaussians with Gaussians last: the scan along depth then runs over
     # contiguous memory, several times faster than along a middle dimension.
     exponent = (basis @ rows.transpose(1, 2)).to(blended.dtype)  # [C, P, K]: ln o − ½ dᵀQd
+    if absgrad is not None and exponent.requires_grad:
+        exponent = _AbsGradTap.apply(
+            exponent, absgrad, gid, real, means.detach(), conics.detach(), basis
+        )
     if guards.alpha_min > 0:
         # exp is about ten times slower on arguments far below its underflow (padded slots
         # and far pixels reach -1e4). Every pair under ln(alpha_min) is dropped just below,
@@ -352,6 +365,41 @@ def _composite_chunk(
     if contribution is not None:
         _add_contribution(contribution, weight.detach(), gid, tiles, tiles_x, tile_size, image_size)
     return weight @ gather(blended, gid)
+
+
+class _AbsGradTap(torch.autograd.Function):
+    """The identity on the exponents ψ = ln o − ½ dᵀQd [C, P, K], whose backward also adds
+    Σ over pixels of |∂L/∂means2d| to a per-Gaussian sink (AbsGS, Ye et al. 2024). A pair's
+    share of ∂L/∂means2d is ∂L/∂ψ · Q d with d = p − m: the gradient summed per pixel before
+    the pixels are summed, which autograd alone never shows."""
+
+    @staticmethod
+    def forward(  # type: ignore[override]
+        ctx: Any,
+        exponent: Tensor,
+        sink: Tensor,
+        gid: Tensor,
+        real: Tensor,
+        means: Tensor,
+        conics: Tensor,
+        basis: Tensor,
+    ) -> Tensor:
+        ctx.sink = sink
+        ctx.save_for_backward(gid, real, means, conics, basis)
+        return exponent.view_as(exponent)
+
+    @staticmethod
+    def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
+        gid, real, means, conics, basis = ctx.saved_tensors
+        g = grad.to(GEOMETRY_DTYPE)
+        dx = basis[None, :, 3, None] - means[:, None, :, 0]  # [C, P, K]
+        dy = basis[None, :, 4, None] - means[:, None, :, 1]
+        a, b, c = (conics[:, None, :, i] for i in range(3))
+        per_axis = torch.stack(
+            ((g * (a * dx + b * dy)).abs().sum(1), (g * (b * dx + c * dy)).abs().sum(1)), dim=-1
+        )  # [C, K, 2]
+        ctx.sink.index_put_((gid[real],), per_axis[real], accumulate=True)
+        return grad, None, None, None, None, None, None
 
 
 def _add_contribution(

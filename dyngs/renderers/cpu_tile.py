@@ -117,7 +117,8 @@ class CpuTileRenderer:
         bins = bin_tiles_compiled(screen, *size)
         features = torch.cat((screen.colors, screen.depths.to(screen.colors.dtype)[:, None]), 1)
         log_opacity = screen.opacities.clamp_min(1e-30).log()
-        plan = _Plan(bins, size, self.guards, self.config.threads, contribution)
+        absgrad = torch.zeros(len(features), 2, dtype=torch.float64)
+        plan = _Plan(bins, size, self.guards, self.config.threads, contribution, absgrad=absgrad)
         inputs = (screen.means2d, screen.conics, log_opacity, features)
         sums, per_pair = _Composite.apply(*inputs, plan)
         self.last_work = plan.work
@@ -135,6 +136,7 @@ class CpuTileRenderer:
             visible=screen.visible,
             num_nonfinite=screen.num_nonfinite,
             contribution=weights,
+            means2d_absgrad=plan.absgrad,
         )
 
     def with_contribution(
@@ -156,6 +158,9 @@ class _Plan:
     contribution: bool
     work: np.ndarray | None = None
     """After the forward: per busy tile, the pixel visits and the pairs drawn."""
+    absgrad: Tensor | None = None
+    """When given, the backward fills it with Σ over pixels of |∂L/∂means2d| per axis
+    (`RenderOutput.means2d_absgrad`)."""
 
     def tile_order(self) -> np.ndarray:
         """The tiles with any Gaussian, busiest first (by Gaussian count): dealt to the
@@ -413,6 +418,8 @@ class _Composite(torch.autograd.Function):
         _launch(tile_kernels.composite_backward, plan.threads, scene, order, plan.layout(),
                 plan.limits(), upstream, transmittance, last, pair_grads)  # fmt: skip
         grads = torch.from_numpy(_per_gaussian(plan.bins, pair_grads, len(scene[0])))
+        if plan.absgrad is not None:
+            plan.absgrad.copy_(grads[:, 10:12])
         feature_dtype = torch.from_numpy(scene[3][:0]).dtype
         return (
             grads[:, 0:2],

@@ -122,7 +122,32 @@ class CudaTileRenderer:
             radii=torch.where(visible[:, None], radii, 0).int(),
             visible=visible,
             num_nonfinite=ready.num_nonfinite,
+            means2d_absgrad=self._absgrad_sink(meta, len(g)),
         )
+
+    def _absgrad_sink(self, meta: dict[str, Tensor], n: int) -> Tensor | None:
+        """A per-Gaussian [N, 2] buffer that backward fills with gsplat's per-pixel absolute
+        gradient, or None when it is not asked for. gsplat hangs it on its means2d tensor as
+        `.absgrad` inside its rasterizer's backward; a hook on that tensor runs once all of
+        its gradient is in, so after that backward, and copies it out."""
+        full = meta["means2d"]
+        if not (self.config.absgrad and full.requires_grad):
+            return None
+        sink = full.new_zeros(n, 2)
+        ids = meta.get("gaussian_ids") if self.config.packed else None
+
+        def fill(_grad: Tensor) -> None:
+            value = getattr(full, "absgrad", None)
+            if value is None:
+                return
+            with torch.no_grad():
+                if ids is None:
+                    sink.copy_(value.reshape(-1, n, 2)[0])
+                else:
+                    sink.index_copy_(0, ids, value.reshape(-1, 2))
+
+        full.register_hook(fill)
+        return sink
 
     @staticmethod
     def _background_only(

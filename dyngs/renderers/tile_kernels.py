@@ -48,7 +48,7 @@ _SKIP_MARGIN = 1e-2
 below any rounding of the exponent, so the cut never drops a pixel the exact per-pixel
 test would keep."""
 
-PAIR_GRADS = 10
+PAIR_GRADS = 12
 """Columns of the per-pair gradients: ∂/∂(mean x, mean y), ∂/∂(conic a, b, c),
 ∂/∂ln o, ∂/∂(r, g, b, depth)."""
 
@@ -388,8 +388,11 @@ def _backward_gaussian(
             trans[p] = t_before
             if not clamped:
                 d_exp = d_alpha * al
-                grad[0] += d_exp * (a * dx + b * dy)
-                grad[1] += d_exp * (b * dx + c * dy)
+                g_mx, g_my = d_exp * (a * dx + b * dy), d_exp * (b * dx + c * dy)
+                grad[0] += g_mx
+                grad[1] += g_my
+                grad[10] += abs(g_mx)
+                grad[11] += abs(g_my)
                 grad[2] -= 0.5 * d_exp * dx * dx
                 grad[3] -= d_exp * dx * dy
                 grad[4] -= 0.5 * d_exp * dy * dy

@@ -44,6 +44,8 @@ def _render(
     (stacked * weights.to(stacked.dtype)).sum().backward()
     grads = {name: leaf.grad for name, leaf in leaves.items()}
     grads["means2d"] = out.means2d.grad
+    # Not a gradient, but filled by the same backward, and held to the same tolerance.
+    grads["means2d_absgrad"] = out.means2d_absgrad
     return out, {name: grad for name, grad in grads.items() if grad is not None}
 
 
@@ -313,3 +315,22 @@ def test_an_empty_view_still_runs_backward() -> None:
     assert torch.equal(out.rgb, background.expand_as(out.rgb))
     out.rgb.sum().backward()
     assert behind.means.grad is None or bool((behind.means.grad == 0).all())
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["float64", "float32"])
+def test_the_absolute_gradient_bounds_the_gradient_and_equals_it_on_one_pixel(
+    dtype: torch.dtype,
+) -> None:
+    # Σ|g_p| ≥ |Σ g_p| per axis, with equality where one pixel holds all the terms; and the
+    # bound is strict somewhere on a real image (terms of both signs cancel in the gradient).
+    for width, height, strict in ((57, 43, True), (1, 1, False)):
+        gaussians, camera, background = random_scene(5, 400, width, height, dtype, 1)
+        for config in (CpuReferenceConfig(), CpuTileConfig()):
+            _, grads = _render(config, gaussians, camera, background)
+            grad, absgrad = grads["means2d"].abs(), grads["means2d_absgrad"]
+            slack = 1e-12 if dtype == torch.float64 else 1e-5 * float(absgrad.max())
+            assert bool((absgrad >= grad - slack).all())
+            if strict:
+                assert float((absgrad - grad).max()) > 0.1 * float(absgrad.max())
+            else:
+                assert float((absgrad - grad).abs().max()) <= slack
