@@ -1,9 +1,12 @@
 from __future__ import annotations
 
+import dataclasses
+import io
 from pathlib import Path
 
 import pytest
 import torch
+from rich.console import Console
 
 from dyngs.engine import schedules
 from dyngs.engine.densify import DensifyConfig, apply_topology, plan_refinement
@@ -84,3 +87,49 @@ def test_budget_grows_on_a_schedule() -> None:
 def test_importance_views_must_not_be_negative() -> None:
     with pytest.raises(ConfigError, match="importance-views must be ≥ 0"):
         DensifyConfig(importance_views=-1)
+
+
+def test_absgrad_accumulates_the_absolute_gradient_and_meets_its_own_threshold(
+    tmp_path: Path,
+) -> None:
+    # The same two steps with either statistic: the parameters stay identical (statistics
+    # never touch them before a refinement), and the absolute gradient is at least the
+    # gradient for every Gaussian, and larger in total (terms of both signs cancel).
+    plain = tiny_trainer(tmp_path / "plain", densify=DensifyConfig(absgrad=False))
+    absolute = tiny_trainer(tmp_path / "abs", densify=DensifyConfig(absgrad=True))
+    for trainer in (plain, absolute):
+        for step in range(2):
+            trainer.train_step(step)
+    grad, absgrad = plain.lifecycle.state.grad_sum, absolute.lifecycle.state.grad_sum
+    assert torch.equal(plain.model.canonical.means, absolute.model.canonical.means)
+    assert bool((absgrad >= grad * (1 - 1e-6)).all()) and float(absgrad.sum()) > float(grad.sum())
+
+    # Refinement compares the mean against the statistic's own threshold.
+    model, state = plain.model, plain.lifecycle.state
+    state.grad_sum[:] = 5e-4  # above the gradient's 2e-4, below the absolute gradient's 8e-4
+    state.count[:] = 1.0
+    for use_abs, grows in ((False, True), (True, False)):
+        config = DensifyConfig(absgrad=use_abs, reset_opacity_every=0, prune_importance=0.0)
+        plan = plan_refinement(config, model, state, step=100, extent=plain.extent)
+        grew = plan is not None and len(plan[0].source) > len(model.canonical)
+        assert grew == grows, use_abs
+
+
+def test_a_renderer_without_the_absolute_gradient_falls_back_to_the_gradient(
+    tmp_path: Path,
+) -> None:
+    trainer = tiny_trainer(tmp_path)
+    assert trainer.config.densify.absgrad  # the default
+    inner = trainer.renderer
+
+    def without_absgrad(*args, **kwargs):  # type: ignore[no-untyped-def]
+        return dataclasses.replace(inner(*args, **kwargs), means2d_absgrad=None)
+
+    trainer.renderer = without_absgrad  # type: ignore[assignment]
+    trainer.console = Console(file=io.StringIO(), width=200)
+    for step in range(2):
+        trainer.train_step(step)
+    assert not trainer.config.densify.absgrad and not trainer.lifecycle.config.densify.absgrad
+    said = trainer.console.file.getvalue()  # type: ignore[attr-defined]
+    assert said.count("cannot measure the absolute gradient") == 1
+    assert float(trainer.lifecycle.state.grad_sum.sum()) > 0
