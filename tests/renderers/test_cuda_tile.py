@@ -113,6 +113,30 @@ def test_gradients_match_the_reference(seed: int) -> None:
         assert float((relative > 1e-3).float().mean()) <= 0.02, name
 
 
+@needs_gpu
+@pytest.mark.parametrize("packed", [False, True])
+def test_absolute_gradients_match_the_reference(packed: bool) -> None:
+    # Densification reads them by default: gsplat's `.absgrad`, copied out by a hook.
+    base, camera, background = random_scene(310, 150, 64, 48, torch.float32, sh_degree=1)
+    base.opacities.clamp_(max=0.99)
+    camera, background = camera.to("cuda"), background.cuda()
+    weights = torch.rand(48, 64, 3, generator=torch.Generator().manual_seed(5)).cuda()
+    found = []
+    for config in (CudaTileConfig(packed=packed), CpuReferenceConfig()):
+        g = base.to("cuda")
+        means = g.means.clone().requires_grad_(True)
+        out = config.build()(
+            Gaussians(means, g.quats, g.scales, g.opacities, g.colors, 1), camera, background
+        )
+        (out.rgb * weights).sum().backward()
+        assert out.means2d_absgrad is not None
+        found.append(out.means2d_absgrad.double())
+    fast, slow = found
+    relative = ((fast - slow).abs() / slow.abs().max()).flatten()
+    assert float(slow.abs().max()) > 0
+    assert float((relative > 1e-3).float().mean()) <= 0.02
+
+
 def test_an_empty_scene_is_the_background_without_calling_gsplat() -> None:
     # gsplat's projection stops the process (SIGFPE, seen on an H200) when handed zero
     # Gaussians, so cuda-tile draws an empty scene itself. That path needs no GPU: it must
