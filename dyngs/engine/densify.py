@@ -35,8 +35,9 @@ class DensifyConfig:
     """Densify by the absolute gradient, Σ over pixels of |∂L/∂means2d| (AbsGS, Ye et al.
     2024), against `absgrad_threshold`, rather than by the gradient against
     `grad_threshold`. Where a Gaussian blurs detail, per-pixel gradients of both signs
-    cancel in the gradient but not here, so it still asks to be split; on our scenes it
-    keeps test PSNR and needs about a quarter fewer Gaussians (docs/ACCURACY.md).
+    cancel in the gradient but not here, so it still asks to be split. On our scenes it
+    draws about as well with markedly fewer Gaussians, so a time budget buys more steps
+    (docs/ACCURACY.md).
     `--densify.no-absgrad` is 3DGS's rule; renderers that cannot measure it fall back."""
     absgrad_threshold: float = 8e-4
     """The threshold on the mean absolute gradient (NDC units; AbsGS and gsplat use 4× the

@@ -17,6 +17,7 @@ keeps between refinements is `DensifyState`, saved with the checkpoint.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Callable
@@ -37,6 +38,7 @@ from dyngs.engine.densify import (
     plan_refinement,
     probe_band,
     reset_opacity_logits,
+    view_statistics,
 )
 from dyngs.engine.distributed import SINGLE, ProcessGroup
 from dyngs.engine.motion import FixedCameraMotion, model_bytes, revisit, sample_times
@@ -298,3 +300,27 @@ class Lifecycle:
 
     def _say(self, line: str) -> None:
         self.console.print(line, highlight=False, markup=False)
+
+
+def densify_statistics(
+    lifecycle: Lifecycle,
+    out: RenderOutput,
+    size: tuple[int, int],
+    means_grad: Tensor | None,
+    time: float,
+    views: int,
+) -> StepStatistics | None:
+    """A view's densification statistics (`densify.view_statistics`) under the lifecycle's
+    config. A renderer that cannot measure the absolute gradient makes the run densify by
+    the gradient against its own threshold (`lifecycle.config` changes), said once."""
+    config = lifecycle.config
+    if config.densify.absgrad and out.means2d_absgrad is None:
+        densify = dataclasses.replace(config.densify, absgrad=False)
+        lifecycle.config = config = dataclasses.replace(config, densify=densify)
+        lifecycle.console.print(
+            "[densify] the renderer cannot measure the absolute gradient: densifying "
+            "by the gradient (--densify.grad-threshold)",
+            highlight=False,
+            markup=False,
+        )
+    return view_statistics(out, *size, means_grad, time, views, config.densify.absgrad)

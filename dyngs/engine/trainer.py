@@ -41,11 +41,10 @@ from dyngs.engine.checkpoint import (
     save_checkpoint,
     training_state,
 )
-from dyngs.engine.densify import view_statistics
 from dyngs.engine.distributed import SINGLE, ProcessGroup, RankLost, check_batch
 from dyngs.engine.evaluate import evaluate
 from dyngs.engine.interrupt import deferred_interrupt
-from dyngs.engine.lifecycle import Lifecycle
+from dyngs.engine.lifecycle import Lifecycle, densify_statistics
 from dyngs.engine.objective import Objective
 from dyngs.engine.optim import build_optimizer, set_learning_rates
 from dyngs.engine.report import Counters, StepStats, log_step, run_summary, write_metrics
@@ -233,18 +232,6 @@ class Trainer:
         first = views[0]
         return StepStats(loss.detach(), first.terms, first.out, first.batch, good)
 
-    def _without_absgrad(self) -> None:
-        """A renderer that cannot measure the absolute gradient: densify by the gradient
-        against its own threshold, and say so once."""
-        densify = dataclasses.replace(self.config.densify, absgrad=False)
-        self.config = self.lifecycle.config = dataclasses.replace(self.config, densify=densify)
-        self.console.print(
-            f"[densify] renderer {type(self.renderer).__name__} cannot measure the absolute "
-            "gradient: densifying by the gradient (--densify.grad-threshold)",
-            highlight=False,
-            markup=False,
-        )
-
     def _view(self, step: int, index: int, probe: int | None, other: float | None) -> ViewResult:
         """Training view `index`: drawn, its loss (divided by the step's view count) sent
         backward, its densification statistics taken."""
@@ -254,8 +241,6 @@ class Trainer:
         gaussians = model.at(batch.time, sh_degree=probe)
         self.counters.deformation_seconds += time.perf_counter() - started if model.deforms else 0
         out = self.lifecycle.render(self.renderer, gaussians, batch.camera, self.data.background)
-        if self.config.densify.absgrad and out.means2d_absgrad is None:
-            self._without_absgrad()
         self.nonfinite_culled += out.num_nonfinite.to(self.nonfinite_culled.device)
         terms = self.objective.terms(model, out, batch, gaussians, step, other)
         loss = torch.stack(list(terms.values())).sum()
@@ -263,9 +248,8 @@ class Trainer:
         if means_grad is not None:  # as the step's gradient will be (quarantine_nonfinite…)
             means_grad = means_grad.masked_fill(~model.canonical.finite_rows()[:, None], 0.0)
         size = (batch.camera.width, batch.camera.height)
-        stats = view_statistics(
-            out, *size, means_grad, batch.time, views, self.config.densify.absgrad
-        )
+        stats = densify_statistics(self.lifecycle, out, size, means_grad, batch.time, views)
+        self.config = self.lifecycle.config  # --densify.absgrad may have fallen back
         return ViewResult(loss.detach(), {k: v.detach() for k, v in terms.items()}, out, batch,
                           stats)  # fmt: skip
 

@@ -126,10 +126,10 @@ def test_a_renderer_without_the_absolute_gradient_falls_back_to_the_gradient(
         return dataclasses.replace(inner(*args, **kwargs), means2d_absgrad=None)
 
     trainer.renderer = without_absgrad  # type: ignore[assignment]
-    trainer.console = Console(file=io.StringIO(), width=200)
+    trainer.lifecycle.console = Console(file=io.StringIO(), width=200)
     for step in range(2):
         trainer.train_step(step)
     assert not trainer.config.densify.absgrad and not trainer.lifecycle.config.densify.absgrad
-    said = trainer.console.file.getvalue()  # type: ignore[attr-defined]
+    said = trainer.lifecycle.console.file.getvalue()  # type: ignore[attr-defined]
     assert said.count("cannot measure the absolute gradient") == 1
     assert float(trainer.lifecycle.state.grad_sum.sum()) > 0
