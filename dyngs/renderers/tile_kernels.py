@@ -50,7 +50,8 @@ test would keep."""
 
 PAIR_GRADS = 12
 """Columns of the per-pair gradients: ∂/∂(mean x, mean y), ∂/∂(conic a, b, c),
-∂/∂ln o, ∂/∂(r, g, b, depth)."""
+∂/∂ln o, ∂/∂(r, g, b, depth), and Σ over pixels of |∂/∂mean x|, |∂/∂mean y| (AbsGS's
+statistic, `RenderOutput.means2d_absgrad`)."""
 
 
 def _to_dtype(like: np.ndarray, value: float) -> float:  # pragma: no cover - see below
