@@ -36,9 +36,10 @@ BRANCHES = ("means", "quats", "scales")
 
 
 def build_head(features: int, generator: torch.Generator) -> DeformationHead:
-    """The default head, its last layers made non-zero (as after training)."""
+    """The head with position, rotation and scale branches (the default when the figures in
+    docs/RENDERER.md were measured), its last layers made non-zero (as after training)."""
     box = SceneBox((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
-    head = DeformationHeadConfig().build(features, box, generator=generator)
+    head = DeformationHeadConfig(scale=True).build(features, box, generator=generator)
     for name in BRANCHES:
         nn.init.normal_(getattr(head, name)[3].weight, std=0.1, generator=generator)
     return head

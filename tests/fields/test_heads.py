@@ -40,11 +40,11 @@ def test_zero_at_initialisation(dtype: torch.dtype, n: int) -> None:
 
 
 def test_disabled_attributes_are_none_and_have_no_parameters() -> None:
-    head = DeformationHeadConfig(width=8).build(5, BOX)  # defaults: rotation and scale only
+    head = DeformationHeadConfig(width=8).build(5, BOX)  # defaults: position and rotation
     deltas = head(torch.randn(3, 5))
-    assert deltas.opacities is None and deltas.colors is None
-    assert deltas.quats is not None and deltas.scales is not None
-    assert head.opacities is None and head.colors is None
+    assert deltas.scales is None and deltas.opacities is None and deltas.colors is None
+    assert deltas.quats is not None
+    assert head.scales is None and head.opacities is None and head.colors is None
     minimal = DeformationHeadConfig(width=8, rotation=False, scale=False).build(5, BOX)
     assert set(_present(minimal(torch.randn(3, 5)))) == {"means"}
     # Trunk 5→8 and one position branch (8→8, 8→3).
