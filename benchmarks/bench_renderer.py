@@ -95,6 +95,17 @@ def save_scene(path: Path, gaussians: Gaussians, camera: Camera) -> None:
              K=k.astype(np.float32), width=camera.width, height=camera.height)  # fmt: skip
 
 
+def load_scene_file(path: Path) -> tuple[Gaussians, Camera]:
+    """The Gaussians and camera of a scene file written by `save_scene`."""
+    s = dict(np.load(path))
+    k = s["K"].astype(np.float64)
+    camera = Camera(float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2]),
+                    torch.from_numpy(s["world_to_camera"]), int(s["width"]),
+                    int(s["height"]))  # fmt: skip
+    names = ("means", "quats", "scales", "opacities", "colors")
+    return Gaussians(**{n: torch.from_numpy(s[n]) for n in names}), camera
+
+
 def demo_frames(run: Path, folder: Path, limit: int) -> list[Path]:
     """Up to `limit` test frames of a trained run, as scene files (SH evaluated to RGB)."""
     from dyngs.renderers.stages import prepare
@@ -124,14 +135,10 @@ def run_dyngs(renderer: str, scene: Path, out: Path, repeats: int, backward: boo
     """Child process: render `scene` with a dyngs renderer; the adapters' output format."""
     from dyngs.renderers import RENDERERS
 
-    s = dict(np.load(scene))
-    width, height = int(s["width"]), int(s["height"])
-    k = s["K"].astype(np.float64)
-    camera = Camera(float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2]),
-                    torch.from_numpy(s["world_to_camera"]), width, height)  # fmt: skip
+    gaussians, camera = load_scene_file(scene)
     draw = RENDERERS.get(renderer)().build()
     composite_s = _time_compositing() if renderer == "cpu-tile" else None
-    base = {n: torch.from_numpy(s[n]) for n in ("means", "quats", "scales", "opacities", "colors")}
+    base = {n: getattr(gaussians, n) for n in ("means", "quats", "scales", "opacities", "colors")}
     forward_s, total_s, pairs = [], [], None
     baseline = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     steady_base: int | None = None

@@ -1,5 +1,5 @@
 """benchmarks/bench_renderer.py: the steady peak counts what is touched after the reset,
-and not what was touched and given back before it."""
+and not what was touched and given back before it; scene files read back what was saved."""
 
 from __future__ import annotations
 
@@ -7,6 +7,7 @@ import mmap
 from pathlib import Path
 
 import pytest
+import torch
 
 from tests.tools.conftest import load_benchmark
 
@@ -34,3 +35,16 @@ def test_steady_peak_sees_only_what_follows_the_reset() -> None:
     after = _touch(32 * MIB)
     assert bench_renderer._status_kb("VmHWM") - base >= 30 * 1024
     after.close()
+
+
+def test_a_saved_scene_reads_back_as_it_was(tmp_path: Path) -> None:
+    scene, camera = bench_renderer.make_scene(50, 24, 1.5)
+    camera = camera.__class__(300.0, 310.0, 11.5, 13.0, camera.world_to_camera, 24, 30)
+    path = tmp_path / "scene.npz"
+    bench_renderer.save_scene(path, scene, camera)
+    loaded, again = bench_renderer.load_scene_file(path)
+    for name in ("means", "quats", "scales", "opacities", "colors"):
+        assert torch.equal(getattr(loaded, name), getattr(scene, name).float()), name
+    assert (again.fx, again.fy, again.cx, again.cy) == (300.0, 310.0, 11.5, 13.0)
+    assert (again.width, again.height) == (24, 30)
+    assert torch.equal(again.world_to_camera, camera.world_to_camera.float())

@@ -9,10 +9,11 @@ from tests.tools.conftest import load_benchmark
 
 pytest.importorskip("numba")
 time_compositing = load_benchmark("time_compositing")
+make_scene = time_compositing.make_scene
 
 
 def test_times_both_launches_and_counts_visits() -> None:
-    r = time_compositing.time_case(300, 40, sigma_px=2.0, threads=1, repeats=2)
+    r = time_compositing.time_case(*make_scene(300, 40, 2.0), threads=1, repeats=2)
     assert len(r["forward_runs_ms"]) == len(r["backward_runs_ms"]) == 2
     assert all(ms > 0 for ms in r["forward_runs_ms"] + r["backward_runs_ms"])
     # Every pair drawn was visited; a scene this dense draws most of what it visits.
