@@ -305,7 +305,7 @@ class Lifecycle:
 def densify_statistics(
     lifecycle: Lifecycle,
     out: RenderOutput,
-    size: tuple[int, int],
+    camera: Camera,
     means_grad: Tensor | None,
     time: float,
     views: int,
@@ -323,4 +323,5 @@ def densify_statistics(
             highlight=False,
             markup=False,
         )
+    size = (camera.width, camera.height)
     return view_statistics(out, *size, means_grad, time, views, config.densify.absgrad)

@@ -165,7 +165,7 @@ class Trainer:
         self.renderer: Renderer = config.renderer.build()
         self.scene = scene or load_scene(config.data, config.dataset, seed=config.seed)
         self.sized_steps = config.max_iters is None
-        self.config = config = resolve_capacity(config, self.scene)
+        config = resolve_capacity(config, self.scene)  # `self.config` once the lifecycle holds it
         self.budget = None
         if config.time_budget is not None:
             ceiling = config.steps * GROWTH if self.sized_steps else config.steps
@@ -192,6 +192,11 @@ class Trainer:
         # Gaussians the renderer culled for a non-finite parameter, summed over the steps
         # since the last log line (a device tensor: counting never waits for the device).
         self.nonfinite_culled = torch.zeros((), dtype=torch.long, device=self.device)
+
+    @property
+    def config(self) -> TrainConfig:
+        """The run's configuration as the lifecycle holds it: training may change it."""
+        return self.lifecycle.config
 
     # ------------------------------------------------------------------ one step
 
@@ -247,9 +252,7 @@ class Trainer:
         means_grad = backward_view(loss if views == 1 else loss / views, model.canonical.means)
         if means_grad is not None:  # as the step's gradient will be (quarantine_nonfinite…)
             means_grad = means_grad.masked_fill(~model.canonical.finite_rows()[:, None], 0.0)
-        size = (batch.camera.width, batch.camera.height)
-        stats = densify_statistics(self.lifecycle, out, size, means_grad, batch.time, views)
-        self.config = self.lifecycle.config  # --densify.absgrad may have fallen back
+        stats = densify_statistics(self.lifecycle, out, batch.camera, means_grad, batch.time, views)
         return ViewResult(loss.detach(), {k: v.detach() for k, v in terms.items()}, out, batch,
                           stats)  # fmt: skip
 
@@ -265,9 +268,8 @@ class Trainer:
         """Count a skipped step; a streak of `--max-bad-steps` stops the run."""
         if (streak := self.counters.record(good)) >= self.config.max_bad_steps:
             raise TrainingDiverged(
-                f"training stopped at step {step}: {streak} consecutive steps had "
-                f"a non-finite loss or gradient; the last good checkpoint is "
-                f"{self.checkpoint_path()}"
+                f"training stopped at step {step}: {streak} consecutive steps had a non-finite "
+                f"loss or gradient; the last good checkpoint is {self.checkpoint_path()}"
             )
 
     # --------------------------------------------------------------- the loop
@@ -284,14 +286,13 @@ class Trainer:
         return [note for note in notes if note is not None]
 
     def train(self) -> dict[str, Any]:
-        cfg = self.config
         for note in self.notes():
             self.console.print(note, highlight=False, markup=False)
         with (
             deferred_interrupt() as interrupted,
             Progress(*PROGRESS_COLUMNS, console=self.console, transient=False) as progress,
         ):
-            task = progress.add_task("train", total=cfg.steps, completed=self.step, info="")
+            task = progress.add_task("train", total=self.config.steps, completed=self.step, info="")
 
             def show(info: str) -> None:
                 progress.update(task, completed=self.step, total=self.config.steps, info=info)
@@ -354,7 +355,7 @@ class Trainer:
             self.console.print(said, highlight=False, markup=False)
 
     def set_steps(self, steps: int) -> None:
-        self.config = self.lifecycle.config = dataclasses.replace(self.config, max_iters=steps)
+        self.lifecycle.config = dataclasses.replace(self.config, max_iters=steps)
 
     def log(self, stats: StepStats, rate: float) -> str:
         """Write the scalars of the last step and return its progress line."""
