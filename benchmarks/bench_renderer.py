@@ -86,11 +86,15 @@ def make_scene(n: int, size: int, sigma_px: float, seed: int = 0) -> tuple[Gauss
     return Gaussians(means, quats, scales, opacities, colors), camera
 
 
+SCENE_ARRAYS = ("means", "quats", "scales", "opacities", "colors")
+"""The Gaussians' fields a scene file holds (SH evaluated to RGB beforehand)."""
+
+
 def save_scene(path: Path, gaussians: Gaussians, camera: Camera) -> None:
     """The adapters' scene file (benchmarks/peers/scene.py)."""
     k = np.array([[camera.fx, 0, camera.cx], [0, camera.fy, camera.cy], [0, 0, 1]])
     arrays = {name: getattr(gaussians, name).detach().float().numpy()
-              for name in ("means", "quats", "scales", "opacities", "colors")}  # fmt: skip
+              for name in SCENE_ARRAYS}  # fmt: skip
     np.savez(path, **arrays, world_to_camera=camera.world_to_camera.float().numpy(),
              K=k.astype(np.float32), width=camera.width, height=camera.height)  # fmt: skip
 
@@ -102,8 +106,7 @@ def load_scene_file(path: Path) -> tuple[Gaussians, Camera]:
     camera = Camera(float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2]),
                     torch.from_numpy(s["world_to_camera"]), int(s["width"]),
                     int(s["height"]))  # fmt: skip
-    names = ("means", "quats", "scales", "opacities", "colors")
-    return Gaussians(**{n: torch.from_numpy(s[n]) for n in names}), camera
+    return Gaussians(**{n: torch.from_numpy(s[n]) for n in SCENE_ARRAYS}), camera
 
 
 def demo_frames(run: Path, folder: Path, limit: int) -> list[Path]:
@@ -138,7 +141,7 @@ def run_dyngs(renderer: str, scene: Path, out: Path, repeats: int, backward: boo
     gaussians, camera = load_scene_file(scene)
     draw = RENDERERS.get(renderer)().build()
     composite_s = _time_compositing() if renderer == "cpu-tile" else None
-    base = {n: getattr(gaussians, n) for n in ("means", "quats", "scales", "opacities", "colors")}
+    base = {n: getattr(gaussians, n) for n in SCENE_ARRAYS}
     forward_s, total_s, pairs = [], [], None
     baseline = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     steady_base: int | None = None

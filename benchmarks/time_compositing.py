@@ -31,6 +31,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from bench_renderer import (  # noqa: E402
+    SCENE_ARRAYS,
     _time_compositing,
     demo_frames,
     load_scene_file,
@@ -51,7 +52,7 @@ def time_case(scene: Gaussians, camera: Camera, threads: int, repeats: int) -> d
     forward, backward = [], []
     for repeat in range(repeats + 1):
         leaves = {name: getattr(scene, name).clone().requires_grad_(True)
-                  for name in ("means", "quats", "scales", "opacities", "colors")}  # fmt: skip
+                  for name in SCENE_ARRAYS}  # fmt: skip
         spent.clear()
         out = draw(Gaussians(**leaves), camera, torch.zeros(3))
         (out.rgb.sum() + out.alpha.sum()).backward()

@@ -43,7 +43,7 @@ def test_a_saved_scene_reads_back_as_it_was(tmp_path: Path) -> None:
     path = tmp_path / "scene.npz"
     bench_renderer.save_scene(path, scene, camera)
     loaded, again = bench_renderer.load_scene_file(path)
-    for name in ("means", "quats", "scales", "opacities", "colors"):
+    for name in bench_renderer.SCENE_ARRAYS:
         assert torch.equal(getattr(loaded, name), getattr(scene, name).float()), name
     assert (again.fx, again.fy, again.cx, again.cy) == (300.0, 310.0, 11.5, 13.0)
     assert (again.width, again.height) == (24, 30)
