@@ -108,7 +108,8 @@ class TrainConfig:
     time_budget: float | None = None
     """Minutes of training the whole schedule must fit in: `max_iters` (given, or sized) is
     re-planned from the measured step rate as the run goes, and each change is reported
-    (dyngs/engine/budget.py). A budgeted run depends on the machine's speed."""
+    (dyngs/engine/budget.py). A re-plan changes the pace of the rest of the schedule, never
+    moves it back. A budgeted run depends on the machine's speed."""
     warmup_iters: int = 200
     """Static warm-up: the canonical Gaussians alone are fitted for this many iterations."""
     warmup_time: float = 0.05
@@ -162,6 +163,12 @@ class TrainConfig:
     """Split evaluated at the end of training (metrics.json and images)."""
     method: tyro.conf.Suppress[str] = "custom"
     """Name of the preset this config came from (set by the CLI)."""
+    pace: tyro.conf.Suppress[tuple[int, float, int] | None] = None
+    """Set by `--time-budget` when it re-plans the step count: (step a, the schedule's
+    position at a, the schedule's length). From step a on, the schedule (laid out for
+    that length) runs from that position to its end over the steps left, so a re-plan
+    changes its pace and never moves it backwards (`dyngs.engine.schedules.position`).
+    None: the schedule's position is the step."""
 
     @property
     def steps(self) -> int:

@@ -5,10 +5,19 @@ widens over `time_ramp` of it, densification stops at `refine_stop` of it, learn
 decay over all of it. So a budget is met by choosing `max_iters`. A step's cost is not
 known in advance: it grows several-fold as Gaussians are added and falls as they turn
 static, so a calibration at the start would mislead. `TimeBudget` measures instead: after
-every log interval it takes the rate of the recent steps and re-plans `max_iters` so that
-the remaining steps fit the remaining time, within [step + 1, `ceiling`]. It changes the
-plan only when it moves by more than `REPLAN_TOLERANCE` and not in the last
-`SETTLED_SHARE` of the run, so the schedule does not jitter; each change is reported.
+every log interval from the end of the warm-up on (whose static steps are several times
+faster than the rest), it takes the rate of the recent steps and re-plans `max_iters` so
+that the remaining steps fit the remaining time, within [step + 1, `ceiling`]. It changes
+the plan only when it moves by more than `REPLAN_TOLERANCE` and not in the last
+`SETTLED_SHARE` of the run; each change is reported.
+
+A re-plan changes the pace of the schedule, not its place: the schedule keeps the position
+it has reached and runs to its end over the new number of steps left
+(`schedules.repaced`). Recomputing its fractions from each new total instead moved them
+backwards whenever a plan grew (the time window narrowed again, the learning rates rose),
+and the plans do swing, as the step's cost changes over a run; that cost the budgeted
+runs accuracy against the same number of fixed steps (docs/ACCURACY.md, "The README's
+demo on two idle cores").
 A budgeted run depends on the machine's speed, so unlike every other run it does not
 repeat to the digit.
 """

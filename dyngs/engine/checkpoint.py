@@ -3,6 +3,7 @@ a broken file behind."""
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -68,6 +69,7 @@ def training_state(trainer: Trainer) -> dict[str, Any]:
         "generator": trainer.generator.get_state(),
         "torch_rng": torch.get_rng_state(),
         "planned_steps": trainer.config.steps,
+        "pace": trainer.config.pace,
         "budget": None if trainer.budget is None else trainer.budget.state_dict(),
     }
 
@@ -89,5 +91,10 @@ def restore_training(trainer: Trainer, state: dict[str, Any]) -> None:
     trainer.counters.load_state_dict(state["counters"])
     if trainer.budget is not None and state.get("budget") is not None:
         trainer.budget.load_state_dict(state["budget"])  # and go on with the plan it had
-        trainer.set_steps(int(state["planned_steps"]))
+        pace = state.get("pace")
+        trainer.lifecycle.config = dataclasses.replace(
+            trainer.config,
+            max_iters=int(state["planned_steps"]),
+            pace=None if pace is None else (int(pace[0]), float(pace[1]), int(pace[2])),
+        )
     trainer.objective.on_topology()

@@ -8,13 +8,43 @@ A run of `max_iters` steps is laid out as:
 
 Nothing here reads or changes state: the trainer and the lifecycle ask these functions
 what a step is, and tests can check a schedule without training anything.
+
+What is laid out in fractions of the run (the time window, densification, the
+learning-rate decay) is read at the step's `position` on a schedule of `length` steps:
+the step itself on a schedule of `max_iters`, unless `--time-budget` re-planned the step
+count (`TrainConfig.pace`). Periodic events (every `refine_every` steps, …) count steps.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 from dyngs.config import TrainConfig
+
+
+def length(config: TrainConfig) -> int:
+    """Steps the schedule is laid out for: `max_iters`, or the length it had when a time
+    budget first re-planned the run."""
+    return config.steps if config.pace is None else config.pace[2]
+
+
+def position(config: TrainConfig, step: int) -> float:
+    """Where `step` falls on the schedule of `length` steps: the step itself, or after a
+    re-plan at step a (position p there) the rest of the schedule spread evenly over the
+    steps left, p + (step − a)(length − p)/(max_iters − a), so that the run's last step
+    is the schedule's end, whatever the budget chose, and nothing moves back."""
+    if config.pace is None:
+        return step
+    start, at, total = config.pace
+    return at + (step - start) * (total - at) / max(config.steps - start, 1)
+
+
+def repaced(config: TrainConfig, step: int, steps: int) -> TrainConfig:
+    """`config` re-planned at `step` to end after `steps` steps: its schedule goes on
+    from where it is at `step`, at the pace the new count gives."""
+    pace = (step, float(position(config, step)), length(config))
+    return dataclasses.replace(config, max_iters=steps, pace=pace)
 
 
 def deforming(config: TrainConfig, step: int) -> bool:
@@ -27,16 +57,16 @@ def time_window(config: TrainConfig, step: int) -> float:
     linearly to 1 over `time_ramp` of the run."""
     if step < config.warmup_iters:
         return config.warmup_time
-    ramp = config.time_ramp * config.steps
+    ramp = config.time_ramp * length(config)
     if ramp <= 0:
         return 1.0
-    widened = (1 - config.warmup_time) * (step - config.warmup_iters) / ramp
+    widened = (1 - config.warmup_time) * (position(config, step) - config.warmup_iters) / ramp
     return min(1.0, config.warmup_time + widened)
 
 
 def window_full_step(config: TrainConfig) -> float:
-    """First step at which the time window spans the whole sequence."""
-    return config.warmup_iters + config.time_ramp * config.steps
+    """Position (`position`) at which the time window spans the whole sequence."""
+    return config.warmup_iters + config.time_ramp * length(config)
 
 
 def is_frontier_step(config: TrainConfig, step: int) -> bool:
@@ -53,22 +83,23 @@ def is_frontier_step(config: TrainConfig, step: int) -> bool:
 def learning_progress(config: TrainConfig, step: int) -> tuple[float, float | None]:
     """How far the learning rates have decayed: the run's progress, and the deformation's
     (from the step the time window is full) when `--optim.hold-deformation-rates`."""
-    progress = step / max(config.steps, 1)
+    at, total = position(config, step), length(config)
+    progress = at / max(total, 1)
     if not config.optim.hold_deformation_rates:
         return progress, None
     full = window_full_step(config)
-    return progress, (step - full) / max(config.steps - full, 1)
+    return progress, (at - full) / max(total - full, 1)
 
 
 def refine_stop(config: TrainConfig) -> float:
-    """Last step that may densify or prune."""
-    return config.densify.refine_stop * config.steps
+    """Last position (`position`) that may densify or prune."""
+    return config.densify.refine_stop * length(config)
 
 
 def is_refine_step(config: TrainConfig, step: int) -> bool:
     """Whether Gaussians are cloned, split and pruned after `step` steps."""
     d = config.densify
-    within = d.refine_start <= step <= refine_stop(config)
+    within = d.refine_start <= position(config, step) <= refine_stop(config)
     return within and step % d.refine_every == 0 and step > 0
 
 
@@ -78,14 +109,16 @@ def budget_at(config: TrainConfig, step: int) -> int:
     d = config.densify
     if d.max_gaussians is None:
         return 2**62
-    progress = (step - d.refine_start) / max(refine_stop(config) - d.refine_start, 1)
+    at = position(config, step)
+    progress = (at - d.refine_start) / max(refine_stop(config) - d.refine_start, 1)
     return int(d.max_gaussians * (0.25 + 0.75 * min(max(progress, 0.0), 1.0)))
 
 
 def is_reset_step(config: TrainConfig, step: int) -> bool:
     """Whether every opacity is clamped down after `step` steps (3DGS's opacity reset)."""
     every = config.densify.reset_opacity_every
-    return every > 0 and step > 0 and step % every == 0 and step <= refine_stop(config)
+    periodic = every > 0 and step > 0 and step % every == 0
+    return periodic and position(config, step) <= refine_stop(config)
 
 
 def is_motion_step(config: TrainConfig, step: int) -> bool:

@@ -8,7 +8,6 @@ happens to the model between steps (`dyngs.engine.lifecycle`), what is reported
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -344,7 +343,9 @@ class Trainer:
 
     def replan(self) -> None:
         """`--time-budget`: let the budget re-plan the step count from the measured rate."""
-        if self.budget is None:
+        # Not before the warm-up has ended: its static steps are several times faster than
+        # the deforming ones, so their rate says nothing about the rest of the run.
+        if self.budget is None or not schedules.deforming(self.config, self.step):
             return
         budget, seconds = self.budget, self.counters.train_seconds
         # Rank 0's measured rate decides for every rank: all must plan the same steps.
@@ -355,7 +356,8 @@ class Trainer:
             self.console.print(said, highlight=False, markup=False)
 
     def set_steps(self, steps: int) -> None:
-        self.lifecycle.config = dataclasses.replace(self.config, max_iters=steps)
+        """End the run after `steps` steps, the schedule going on from where it is now."""
+        self.lifecycle.config = schedules.repaced(self.config, self.step, steps)
 
     def log(self, stats: StepStats, rate: float) -> str:
         """Write the scalars of the last step and return its progress line."""

@@ -3,12 +3,14 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import pytest
 
 from dyngs.config import TrainConfig
 from dyngs.engine import budget as budget_module
+from dyngs.engine import schedules
 from dyngs.engine.budget import TimeBudget
 from dyngs.engine.capacity import STEPS_LIMITS, training_steps
 from dyngs.errors import ConfigError
@@ -49,17 +51,53 @@ def test_small_moves_and_the_last_tenth_keep_the_plan() -> None:
 def test_the_trainer_replans_saves_and_resumes_its_plan(tmp_path: Path) -> None:
     trainer = tiny_trainer(tmp_path, max_iters=400, time_budget=1.0)  # 60 s
     assert trainer.budget is not None and trainer.config.steps == 400
-    trainer.step, trainer.counters.train_seconds = 0, 0.0
+    trainer.step, trainer.counters.train_seconds = 1, 0.0  # in the warm-up: no re-plan
     trainer.replan()
-    trainer.step, trainer.counters.train_seconds = 100, 50.0  # 2 steps per second
+    assert trainer.budget.marks == []
+    trainer.step, trainer.counters.train_seconds = 10, 5.0
     trainer.replan()
-    assert trainer.config.steps == 120  # 10 s left: 20 more steps
+    trainer.step, trainer.counters.train_seconds = 110, 55.0  # 2 steps per second
+    trainer.replan()
+    assert trainer.config.steps == 120  # 5 s left: 10 more steps
+    assert trainer.config.pace == (110, 110.0, 400)  # the 400-step schedule, sped up
     assert trainer.lifecycle.config is trainer.config
     trainer.save()
     again = tiny_trainer(tmp_path / "again", max_iters=400, time_budget=1.0)
     again.load(trainer.checkpoint_path())
     assert again.config.steps == 120 and again.budget is not None
+    assert again.config.pace == trainer.config.pace
     assert again.budget.marks == trainer.budget.marks
+
+
+def test_a_replan_changes_the_pace_and_never_moves_the_schedule_back() -> None:
+    config = TrainConfig(max_iters=1000, warmup_iters=200, time_ramp=0.5)
+    assert all(schedules.position(config, s) == s for s in (0, 200, 555, 1000))
+    # The budget finds at step 400 that 2000 steps fit, then at 1500 that only 1700 do.
+    longer = schedules.repaced(config, 400, 2000)
+    shorter = schedules.repaced(longer, 1500, 1700)
+    for before, after, step in ((config, longer, 400), (longer, shorter, 1500)):
+        assert schedules.position(after, step) == pytest.approx(schedules.position(before, step))
+        assert schedules.time_window(after, step) == pytest.approx(
+            schedules.time_window(before, step)
+        )
+        assert schedules.learning_progress(after, step)[0] == pytest.approx(
+            schedules.learning_progress(before, step)[0]
+        )
+    # Only recomputing the fractions from the new count would have narrowed the window.
+    naive = dataclasses.replace(config, max_iters=2000)
+    assert schedules.time_window(naive, 400) < schedules.time_window(config, 400)
+
+    def along(cfg: TrainConfig, steps: range) -> list[float]:
+        return [schedules.time_window(cfg, s) for s in steps]
+
+    windows = along(longer, range(400, 1501)) + along(shorter, range(1500, 1701))
+    assert windows == sorted(windows) and windows[-1] == 1.0
+    assert schedules.learning_progress(shorter, 1700)[0] == pytest.approx(1.0)
+    assert schedules.length(shorter) == 1000
+    # Densification ends where the 1000-step schedule puts it, half way along it.
+    refining = [s for s in range(400, 1501) if schedules.is_refine_step(longer, s)]
+    last, every = refining[-1], config.densify.refine_every
+    assert schedules.position(longer, last) <= 500 < schedules.position(longer, last + every)
 
 
 def test_without_a_budget_the_plan_is_the_config(tmp_path: Path) -> None:
