@@ -342,9 +342,7 @@ class Trainer:
                 raise KeyboardInterrupt
 
     def replan(self) -> None:
-        """`--time-budget`: let the budget re-plan the step count from the measured rate."""
-        # Not before the warm-up has ended: its static steps are several times faster than
-        # the deforming ones, so their rate says nothing about the rest of the run.
+        """`--time-budget`: after the warm-up, re-plan the step count (see budget.py)."""
         if self.budget is None or not schedules.deforming(self.config, self.step):
             return
         budget, seconds = self.budget, self.counters.train_seconds
@@ -356,7 +354,6 @@ class Trainer:
             self.console.print(said, highlight=False, markup=False)
 
     def set_steps(self, steps: int) -> None:
-        """End the run after `steps` steps, the schedule going on from where it is now."""
         self.lifecycle.config = schedules.repaced(self.config, self.step, steps)
 
     def log(self, stats: StepStats, rate: float) -> str:
