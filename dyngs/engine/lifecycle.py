@@ -323,5 +323,5 @@ def densify_statistics(
             highlight=False,
             markup=False,
         )
-    size = (camera.width, camera.height)
-    return view_statistics(out, *size, means_grad, time, views, config.densify.absgrad)
+    return view_statistics(out, camera.width, camera.height, means_grad, time, views,
+                           config.densify.absgrad)  # fmt: skip
