@@ -45,10 +45,12 @@ from dyngs.types import Camera, Gaussians  # noqa: E402
 CASES = [("10k-128", 10_000, 128), ("50k-256", 50_000, 256)]  # (name, Gaussians, size)
 
 
-def time_case(scene: Gaussians, camera: Camera, threads: int, repeats: int) -> dict:
+def time_case(
+    scene: Gaussians, camera: Camera, threads: int, repeats: int, tile_size: int = 16
+) -> dict:
     """Render one scene forward and backward `repeats` + 1 times; medians of the timed ones."""
     spent = _time_compositing()
-    draw = CpuTileConfig(threads=threads).build()
+    draw = CpuTileConfig(threads=threads, tile_size=tile_size).build()
     forward, backward = [], []
     for repeat in range(repeats + 1):
         leaves = {name: getattr(scene, name).clone().requires_grad_(True)
@@ -80,6 +82,7 @@ def main() -> None:
     parser.add_argument("--demo-run", type=Path, default=None,
                         help="also time this trained run's test frames")  # fmt: skip
     parser.add_argument("--demo-frames", type=int, default=5)
+    parser.add_argument("--tile-size", type=int, default=16, help="cpu-tile's --renderer.tile-size")
     parser.add_argument("--output", type=Path, default=ROOT / "benchmarks/results/compositing.json")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
@@ -92,7 +95,7 @@ def main() -> None:
         scenes += [(path.stem, lambda path=path: load_scene_file(path))
                    for path in demo_frames(args.demo_run, folder, args.demo_frames)]  # fmt: skip
     for name, build in scenes:
-        r = results[name] = time_case(*build(), args.threads, args.repeats)
+        r = results[name] = time_case(*build(), args.threads, args.repeats, args.tile_size)
         print(f"{name}: forward {r['forward_ms']:.2f} ms, backward {r['backward_ms']:.2f} ms, "
               f"{r['visits']:,} visits, {r['pairs_drawn']:,} pairs drawn, "
               f"{r['forward_ns_per_visit']:.1f} / {r['backward_ns_per_visit']:.1f} "
@@ -101,7 +104,8 @@ def main() -> None:
     args.output.write_text(json.dumps({
         "command": " ".join(sys.argv), "commit": source_commit(ROOT), "started": started,
         "machine": machine_info(args.threads), "threads": args.threads,
-        "sigma_px": args.sigma_px, "cases": results}, indent=1))  # fmt: skip
+        "sigma_px": args.sigma_px, "tile_size": args.tile_size,
+        "cases": results}, indent=1))  # fmt: skip
 
 
 if __name__ == "__main__":

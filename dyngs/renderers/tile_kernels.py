@@ -2,15 +2,17 @@
 
 Letters: N Gaussians, M tile–Gaussian pairs (`stages.TileBins`), T tiles, H×W image.
 
-Both kernels run over tiles in parallel: thread j takes tiles j, j + T, j + 2T, … of a
-busiest-first order, so that T threads share the work evenly (numba's own static split
-of a busiest-first range gave one thread most of it: 1.3× on two cores, against 2× this
-way). Within a tile they walk its depth-sorted
-Gaussians (front to back forward, back to front backward) and, for each, only the pixels
-inside its α ≥ 1/255 ellipse: on each row of the tile the ellipse is an interval of
-columns, found by solving the quadratic form for x, so a pixel outside it costs nothing,
-not even an exponential. Pixels keep their own state (transmittance, sums, the last
-Gaussian they took), and a tile stops as soon as every one of its pixels has stopped.
+Each kernel call takes every `threads`-th tile of a busiest-first order, starting at its
+own `thread`; `cpu_tile` runs one call per thread (the kernels release the GIL), so the
+threads share the work evenly. Within a tile the kernels walk its depth-sorted Gaussians
+(front to back forward, back to front backward) and, for each, every pixel of the rows its
+α ≥ 1/255 ellipse reaches. Those pixels run one straight-line body, every branch of the
+per-pixel rule written as a select, which LLVM compiles to vector instructions: a row of
+16 pixels costs about what 2-3 pixels cost one at a time, so a pixel outside the ellipse
+costs a lane rather than a branch, and small Gaussians (most of a trained model) no longer
+pay a per-row set-up that outweighs their few pixels. Pixels keep their own state
+(transmittance, sums, the last Gaussian they took), and a tile stops as soon as every one
+of its pixels has stopped.
 
 Every decision is the one `cpu-reference` makes, in the same precision (the guard table in
 docs/DESIGN.md):
@@ -22,16 +24,17 @@ docs/DESIGN.md):
   `torch.cumprod` does on a CPU); a pixel stops before the first pair after which it
   would fall below `transmittance_min`, and that pair is not drawn;
 - a pair's weight is α × (transmittance before it), in the compositing dtype.
-Sums over a pixel's pairs are accumulated in float64 and rounded once at the end. The
-exponential is the C library's where PyTorch uses its own vectorised one, so α may differ
-in the last bit; a pair is decided differently only if its α or transmittance lies within
-that bit of a threshold.
+Sums over a pixel's pairs are accumulated in float64 and rounded once at the end. In
+float32 the exponential is the correctly rounded one (`_exp_nonpositive`, a polynomial
+that vectorises), where PyTorch uses its own vectorised `expf`, within an ulp of it; so α
+may differ in the last bit, and a pair is decided differently only if its α or
+transmittance lies within that bit of a threshold. In float64 it is libm's `exp`.
 
 Forward keeps what backward needs: each pixel's final transmittance (float64) and the
 position of the last pair it drew. Backward walks each pixel's pairs back to front,
 recovering the transmittance before each pair by dividing by its (1 − α) (≥ 0.01, since
 α ≤ 0.99), as the 3DGS kernels do (Kerbl et al. 2023). Per-pair gradients are written to
-a [M, 10] array that one serial pass then sums per Gaussian in a fixed order, so a render
+a [M, 12] array that one serial pass then sums per Gaussian in a fixed order, so a render
 and its gradients are the same on every run whatever the thread schedule.
 """
 
@@ -40,13 +43,13 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange, types
+from numba import njit, types
 from numba.extending import overload
 
 _SKIP_MARGIN = 1e-2
-"""Rows are cut to the columns where the exponent is ≥ ln(alpha_min) − this margin, far
-below any rounding of the exponent, so the cut never drops a pixel the exact per-pixel
-test would keep."""
+"""A Gaussian is drawn on the rows where its exponent can reach ln(alpha_min) − this
+margin, far below any rounding of the exponent, so the cut never drops a pixel the exact
+per-pixel test would keep."""
 
 PAIR_GRADS = 12
 """Columns of the per-pair gradients: ∂/∂(mean x, mean y), ∂/∂(conic a, b, c),
@@ -67,41 +70,85 @@ def _to_dtype_compiled(like, value):  # type: ignore[no-untyped-def]  # pragma: 
     return lambda like, value: np.float64(value)
 
 
+LANES = 8
+"""Columns of a block: a tile's pixel state is laid out block by block, each block LANES
+columns wide (8 float64 lanes fill one AVX-512 register), and within a block row by row,
+so the cells of a Gaussian's rows within one block are one contiguous run (see `_Cells`).
+Columns past the image in the last block are padding, stopped from the start."""
+
+_LN2_HI = 0.6931471803691238  # ln 2 in two parts (Cody and Waite 1980): n·_LN2_HI is exact
+_LN2_LO = 1.9082149292705877e-10
+
+
+# Not inlined by numba but by LLVM: a numba-level inline would take the instructions into
+# the caller's fastmath flags (the backward kernel reassociates its sums), and this
+# function's rounding must stay as written. The same for `_exponent`. `contract` lets LLVM
+# fuse each multiply-add of the polynomial into one FMA, rounded once (the test below
+# holds the result to the correctly rounded float32 either way).
+@njit(cache=True, nogil=True, fastmath={"contract"})
+def _exp_nonpositive(x: float) -> float:  # pragma: no cover - compiled
+    """exp(x) in float64 for −103 ≤ x ≤ 0 (x is clamped to that range), to ~1e-15
+    relative, in straight-line arithmetic that vectorises (libm's `exp` is a call, one
+    lane at a time). Range reduction x = n ln 2 + r with |r| ≤ ½ ln 2; eʳ by its Taylor
+    polynomial of degree 11 (remainder (½ ln 2)¹²/12! < 1e-14); 2ⁿ written straight into
+    a float64's exponent bits. Rounded to float32 it is the correctly rounded exponential
+    wherever float32 is normal (x ≥ −87; tests/renderers/test_cpu_tile.py)."""
+    x = max(min(x, 0.0), -103.0)
+    n = math.floor(x * 1.4426950408889634 + 0.5)  # x / ln 2, to the nearest integer
+    r = (x - n * _LN2_HI) - n * _LN2_LO
+    p = 1.0 / 39916800.0
+    p = p * r + 1.0 / 3628800.0
+    p = p * r + 1.0 / 362880.0
+    p = p * r + 1.0 / 40320.0
+    p = p * r + 1.0 / 5040.0
+    p = p * r + 1.0 / 720.0
+    p = p * r + 1.0 / 120.0
+    p = p * r + 1.0 / 24.0
+    p = p * r + 1.0 / 6.0
+    p = p * r + 0.5
+    p = p * r + 1.0
+    p = p * r + 1.0
+    return p * np.int64((n + 1023) << 52).view(np.float64)  # 2ⁿ, −149 ≤ n ≤ 0
+
+
+@njit(cache=True, nogil=True)
+def _exponent(
+    lo: float, a: float, b: float, c: float, dx: float, dy: float
+) -> float:  # pragma: no cover - compiled
+    """ln o − ½ dᵀQd in float64, in the reference's order of operations."""
+    return lo - 0.5 * (a * dx * dx + c * dy * dy) - b * dx * dy
+
+
+def _exp(like: np.ndarray, exponent: float) -> float:  # pragma: no cover - see below
+    """exp of `exponent` rounded to the compositing dtype (the dtype of the array `like`),
+    in that dtype. Compiled code uses the overload below."""
+    rounded = like.dtype.type(exponent)
+    return float(like.dtype.type(np.exp(rounded)))
+
+
+@overload(_exp, inline="always")
+def _exp_compiled(like, exponent):  # type: ignore[no-untyped-def]  # pragma: no cover
+    if isinstance(like, types.Array) and like.dtype == types.float32:
+        # The exponent rounded to float32, its exponential correctly rounded to float32
+        # (PyTorch's vectorised expf, which the reference uses, is within an ulp of it).
+        return lambda like, exponent: np.float32(_exp_nonpositive(np.float64(np.float32(exponent))))
+    return lambda like, exponent: np.exp(np.float64(exponent))
+
+
 @njit(cache=True, nogil=True, inline="always")
-def _row_range(
-    my: float, a: float, b: float, c: float, reach: float, y0: int, y1: int
+def _reach(
+    m: float, along: float, det: float, reach: float, lo: int, hi: int
 ) -> tuple[int, int]:  # pragma: no cover - compiled
-    """The rows [lo, hi] of [y0, y1) whose centres the ellipse a·dx² + 2b·dx·dy + c·dy² ≤
-    `reach` reaches: |dy| ≤ √(reach · a / (ac − b²)). Empty when lo > hi."""
-    det = a * c - b * b
+    """The pixels [first, last] of [lo, hi) whose centres an ellipse
+    a·dx² + 2b·dx·dy + c·dy² ≤ `reach` reaches along one axis: |d| ≤ √(reach·along/det),
+    `along` the conic entry of the other axis (a for rows, c for columns) and
+    det = ac − b². Empty when first > last; all of [lo, hi) when det is not positive."""
     if not det > 0.0:
-        return y0, y1 - 1
-    half = math.sqrt(reach * a / det)
-    lo = max(y0, math.ceil(max(my - half - 0.5, y0 - 1.0) - 1e-6))
-    hi = min(y1 - 1, math.floor(min(my + half - 0.5, y1 + 1.0) + 1e-6))
-    return lo, hi
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _row_span(
-    mx: float, my: float, a: float, b: float, c: float, reach: float, y: int, x0: int, x1: int
-) -> tuple[int, int, float]:  # pragma: no cover - compiled
-    """The columns [lo, hi] of pixel row `y`, within [x0, x1), whose centres can lie where
-    a Gaussian's exponent reaches the threshold: a·dx² + 2b·dx·dy + c·dy² ≤ `reach`, solved
-    for dx (a > 0: Q is positive definite). Also returns dy. Empty when lo > hi."""
-    dy = y + 0.5 - my
-    disc = (b * dy) * (b * dy) - a * (c * dy * dy - reach)
-    if not disc >= 0.0:
-        return 1, 0, dy
-    root = math.sqrt(disc)
-    left = mx - 0.5 + (-b * dy - root) / a
-    right = mx - 0.5 + (-b * dy + root) / a
-    if not (right >= x0 - 1.0 and left <= x1 + 1.0):
-        return 1, 0, dy
-    # Clamped in float first, so that a huge ellipse never overflows the conversion.
-    lo = max(x0, math.ceil(max(left, x0 - 1.0) - 1e-6))
-    hi = min(x1 - 1, math.floor(min(right, x1 + 1.0) + 1e-6))
-    return lo, hi, dy
+        return lo, hi - 1
+    half = math.sqrt(reach * along / det)
+    first = max(lo, math.ceil(max(m - half - 0.5, lo - 1.0) - 1e-6))
+    last = min(hi - 1, math.floor(min(m + half - 0.5, hi + 1.0) + 1e-6))
+    return first, last
 
 
 # The kernels take their inputs grouped, so that each stage's signature stays short:
@@ -111,6 +158,12 @@ def _row_span(
 #   limits = (alpha_min, alpha_max, transmittance_min)
 # means2d, conics (a, b, c of Q = Σ⁻¹) and ln opacity are float64; features (r, g, b,
 # depth) are in the compositing dtype, which every decision is made in.
+#
+# Inside a tile, each quantity of the pixel state is its own 1D array over the tile's
+# cells, allocated separately: LLVM vectorises a loop over cells only when it can tell the
+# arrays apart (one 2D array's rows it cannot), and indices it can prove non-negative
+# (hence the unsigned cell index: numba wraps negative ones). Cell (row r, column i) is
+# (i // LANES) · rows · LANES + r · LANES + i % LANES.
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -123,20 +176,55 @@ def _tile_box(tile: int, layout: tuple) -> tuple[int, int, int, int]:  # pragma:
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _alpha(
-    scratch: np.ndarray, lo: float, conic: tuple, dx: float, dy: float, a_max: float
-) -> tuple[float, bool]:  # pragma: no cover - compiled
-    """A pair's α in the compositing dtype, min(exp(ln o − ½ dᵀQd), a_max), and whether
-    the clamp was active (its gradient is then zero)."""
-    a, b, c = conic
-    exponent = lo - 0.5 * (a * dx * dx + c * dy * dy) - b * dx * dy
-    alpha = np.exp(_to_dtype(scratch, exponent))
-    if alpha > a_max:
-        return a_max, True
-    return alpha, False
+def _thresholds(like: np.ndarray, limits: tuple) -> tuple:  # pragma: no cover - compiled
+    """alpha_min, alpha_max and transmittance_min rounded to the compositing dtype (that of
+    the array `like`), which every decision is made in."""
+    return _to_dtype(like, limits[0]), _to_dtype(like, limits[1]), _to_dtype(like, limits[2])
 
 
-@njit(parallel=True, cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
+def _cell(r: int, i: int, rows: int) -> int:  # pragma: no cover - compiled
+    """The cell of row r, column i (both counted within the tile) of a tile of `rows`."""
+    return (i // LANES) * rows * LANES + r * LANES + i % LANES
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _centres(x0: int, y0: int, width: int, rows: int) -> tuple:  # pragma: no cover
+    """The pixel centres (x + ½, y + ½) of a tile's cells, as two float64 arrays, and the
+    number of cells (padding included)."""
+    cells = -(-width // LANES) * LANES * rows
+    xs, ys = np.empty(cells), np.empty(cells)
+    for r in range(rows):
+        for i in range(-(-width // LANES) * LANES):
+            xs[_cell(r, i, rows)] = (x0 + i) + 0.5
+            ys[_cell(r, i, rows)] = (y0 + r) + 0.5
+    return xs, ys
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _footprint(
+    scene: tuple, g: int, box: tuple, log_alpha_min: float
+) -> tuple[float, float, float, float, float, float, int, int, int, int]:  # pragma: no cover
+    """Gaussian g's mean, ln opacity and conic, the rows [r0, r1] of the tile `box` and
+    its blocks of columns [b0, b1] (both counted within the tile) that its α ≥ alpha_min
+    ellipse, widened by `_SKIP_MARGIN` in the exponent, reaches; r0 > r1 when none. The
+    per-pixel test decides every pixel of those cells exactly; the cut only saves work."""
+    means2d, conics, log_opacity = scene[0], scene[1], scene[2]
+    x0, y0, x1, y1 = box
+    mx, my, lo = means2d[g, 0], means2d[g, 1], log_opacity[g]
+    a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
+    reach = 2.0 * (lo - log_alpha_min + _SKIP_MARGIN)
+    if not reach > 0.0:
+        return mx, my, lo, a, b, c, 1, 0, 1, 0
+    det = a * c - b * b
+    c0, c1 = _reach(mx, c, det, reach, x0, x1)
+    if c0 > c1:
+        return mx, my, lo, a, b, c, 1, 0, 1, 0
+    r0, r1 = _reach(my, a, det, reach, y0, y1)
+    return mx, my, lo, a, b, c, r0 - y0, r1 - y0, (c0 - x0) // LANES, (c1 - x0) // LANES
+
+
+@njit(cache=True, nogil=True)
 def composite_forward(
     scene: tuple,
     tile_order: np.ndarray,
@@ -147,23 +235,24 @@ def composite_forward(
     last: np.ndarray,
     contribution: np.ndarray,
     work: np.ndarray,
+    thread: int,
     threads: int,
 ) -> None:  # pragma: no cover - compiled
-    """Composite every tile in `tile_order` front to back, on `threads` threads.
+    """Composite tiles tile_order[thread], tile_order[thread + threads], … front to back
+    (one call per thread; the calls share no tile).
 
     Writes, for every pixel of those tiles, sums [H, W, 5] (Σ w·(r, g, b, depth, 1), in
     the compositing dtype), transmittance [H, W] (float64, after the last pair drawn) and
     last [H, W] (that pair's position in its tile's list, −1 for none); and, when
     `contribution` has M entries, each pair's Σ w over its tile's pixels. work[i] counts
-    tile_order[i]'s pixel visits (pixels inside a Gaussian's row spans, still compositing)
-    and the pairs it drew.
+    tile_order[i]'s lanes (the cells its Gaussians' rows and blocks cover, each evaluated
+    whether or not it is inside the ellipse) and the pairs it drew.
     """
-    for thread in prange(threads):
-        for i in range(thread, tile_order.shape[0], threads):
-            visited, drawn = _forward_tile(scene, tile_order[i], layout, limits, sums,
-                                           transmittance, last, contribution)  # fmt: skip
-            work[i, 0] = visited
-            work[i, 1] = drawn
+    for i in range(thread, tile_order.shape[0], threads):
+        lanes, drawn = _forward_tile(scene, tile_order[i], layout, limits, sums,
+                                     transmittance, last, contribution)  # fmt: skip
+        work[i, 0] = lanes
+        work[i, 1] = drawn
 
 
 @njit(cache=True, nogil=True)
@@ -178,38 +267,45 @@ def _forward_tile(
     contribution: np.ndarray,
 ) -> tuple[int, int]:  # pragma: no cover - compiled
     """One tile of `composite_forward`: its Gaussians front to back, until every pixel
-    has stopped. Returns the pixel visits and pairs drawn."""
-    features, gaussian, tile_start, tile_count = scene[3], scene[4], scene[5], scene[6]
+    has stopped. Returns the lanes run and pairs drawn."""
+    gaussian, tile_start, tile_count = scene[4], scene[5], scene[6]
     x0, y0, x1, y1 = _tile_box(tile, layout)
-    pixels = (x1 - x0) * (y1 - y0)
-    running = np.ones(pixels)  # float64 product of the rounded (1 − α)
-    before = np.ones(pixels, dtype=features.dtype)  # the same, rounded: the dtype's T
-    done = np.zeros(pixels, dtype=np.bool_)
-    acc = np.zeros((pixels, 5))
-    taken = np.full(pixels, -1, dtype=np.int64)
-    active = pixels
-    visits = pairs = 0
+    width, rows = x1 - x0, y1 - y0
+    centres = _centres(x0, y0, width, rows)
+    cells = centres[0].shape[0]
+    # The float64 product of the rounded (1 − α), negated once the pixel has stopped (it
+    # is at least ~1e-6 while drawing, since it stops below 1e-4 and α ≤ 0.99).
+    running = np.ones(cells)
+    for r in range(rows):
+        for i in range(width, -(-width // LANES) * LANES):
+            running[_cell(r, i, rows)] = -1.0
+    acc = (np.zeros(cells), np.zeros(cells), np.zeros(cells), np.zeros(cells), np.zeros(cells))
+    taken = np.full(cells, -1, dtype=np.int64)
+    weights = np.zeros(cells)  # w of the current pair, per cell
+    log_alpha_min = math.log(limits[0])
+    active = rows * width
+    lanes = pairs = 0
     start = tile_start[tile]
     for k in range(tile_count[tile]):
         if active == 0:
             break
-        drawn, stopped, seen, took = _forward_gaussian(
-            scene, gaussian[start + k], k, (x0, y0, x1, y1), limits, running, before, done,
-            acc, taken,
+        drawn, stopped, ran, took = _forward_gaussian(
+            scene, gaussian[start + k], k, (x0, y0, x1, y1), limits, log_alpha_min, centres,
+            running, acc, taken, weights, contribution.shape[0] > 0,
         )  # fmt: skip
         active -= stopped
-        visits += seen
+        lanes += ran
         pairs += took
         if contribution.shape[0] > 0:
             contribution[start + k] = drawn
-    for y in range(y0, y1):
-        for x in range(x0, x1):
-            p = (y - y0) * (x1 - x0) + x - x0
+    for r in range(rows):
+        for i in range(width):
+            p = _cell(r, i, rows)
             for j in range(5):
-                sums[y, x, j] = acc[p, j]
-            transmittance[y, x] = running[p]
-            last[y, x] = taken[p]
-    return visits, pairs
+                sums[y0 + r, x0 + i, j] = acc[j][p]
+            transmittance[y0 + r, x0 + i] = abs(running[p])
+            last[y0 + r, x0 + i] = taken[p]
+    return lanes, pairs
 
 
 # Inlined: a call would pass a dozen arrays, and numba counts references on each of them,
@@ -221,60 +317,61 @@ def _forward_gaussian(
     k: int,
     box: tuple,
     limits: tuple,
+    log_alpha_min: float,
+    centres: tuple,
     running: np.ndarray,
-    before: np.ndarray,
-    done: np.ndarray,
-    acc: np.ndarray,
+    acc: tuple,
     taken: np.ndarray,
+    weights: np.ndarray,
+    measure: bool,
 ) -> tuple[float, int, int, int]:  # pragma: no cover - compiled
-    """Draw Gaussian `g` (position `k` in the tile's list) into the tile's pixel state;
-    returns Σ w over the pixels it drew, how many pixels stopped at it, how many it
-    visited and how many it drew."""
-    means2d, conics, log_opacity, features = scene[0], scene[1], scene[2], scene[3]
-    x0, y0, x1, y1 = box
-    scratch = features  # the dtype to round to
-    a_min = _to_dtype(scratch, limits[0])
-    a_max = _to_dtype(scratch, limits[1])
-    t_min = _to_dtype(scratch, limits[2])
-    mx, my, lo = means2d[g, 0], means2d[g, 1], log_opacity[g]
-    conic = (conics[g, 0], conics[g, 1], conics[g, 2])
-    reach = 2.0 * (lo - math.log(limits[0]) + _SKIP_MARGIN)
-    drawn, stopped, visits, pairs = 0.0, 0, 0, 0
-    if not reach > 0.0:
-        return drawn, stopped, visits, pairs
+    """Draw Gaussian `g` (position `k` in the tile's list) into the tile's pixel state.
+    Returns Σ w over the pixels it drew (when `measure`), how many pixels stopped at it,
+    how many cells it ran and how many pixels it drew.
+
+    Within each block of columns it reaches, the cells of its rows are one run, and every
+    cell runs the same straight-line code (each branch of the per-pixel rule a select,
+    each store writing back the new or the old value), which LLVM turns into vector
+    instructions: a cell outside the ellipse costs a lane, not a mispredicted branch."""
+    features = scratch = scene[3]  # scratch: the dtype to round to
+    a_min, a_max, t_min = _thresholds(scratch, limits)
+    zero = _to_dtype(scratch, 0.0)
+    mx, my, lo, a, b, c, r0, r1, b0, b1 = _footprint(scene, g, box, log_alpha_min)
     f0, f1, f2, f3 = features[g, 0], features[g, 1], features[g, 2], features[g, 3]
-    row_lo, row_hi = _row_range(my, conic[0], conic[1], conic[2], reach, y0, y1)
-    for y in range(row_lo, row_hi + 1):
-        col_lo, col_hi, dy = _row_span(mx, my, conic[0], conic[1], conic[2], reach, y, x0, x1)
-        row = (y - y0) * (x1 - x0) - x0
-        for x in range(col_lo, col_hi + 1):
-            p = row + x
-            if done[p]:
-                continue
-            visits += 1
-            alpha, _ = _alpha(scratch, lo, conic, x + 0.5 - mx, dy, a_max)
-            if alpha < a_min:
-                continue
-            after = running[p] * _to_dtype(scratch, 1.0 - alpha)
-            if _to_dtype(scratch, after) < t_min:
-                done[p] = True
-                stopped += 1
-                continue
-            w = alpha * before[p]
-            acc[p, 0] += w * f0
-            acc[p, 1] += w * f1
-            acc[p, 2] += w * f2
-            acc[p, 3] += w * f3
-            acc[p, 4] += w
-            drawn += w
-            pairs += 1
-            running[p] = after
-            before[p] = _to_dtype(scratch, after)
-            taken[p] = k
-    return drawn, stopped, visits, pairs
+    acc0, acc1, acc2, acc3, acc4 = acc
+    xs, ys = centres
+    column_cells = (box[3] - box[1]) * LANES  # the cells of one block
+    run = max(r1 + 1 - r0, 0) * LANES
+    drawn = 0.0
+    stopped = pairs = 0
+    for block in range(b0, b1 + 1):
+        first = block * column_cells + r0 * LANES
+        for j in range(run):
+            p = np.uint64(first + j)
+            alpha = min(_exp(scratch, _exponent(lo, a, b, c, xs[p] - mx, ys[p] - my)), a_max)
+            t = running[p]
+            live = (t > 0.0) & (alpha >= a_min)
+            after = t * _to_dtype(scratch, 1.0 - alpha)
+            stop = live & (_to_dtype(scratch, after) < t_min)
+            draw = live & (not stop)
+            w = alpha * _to_dtype(scratch, t) if draw else zero  # α × T, T in the dtype
+            acc0[p] += w * f0
+            acc1[p] += w * f1
+            acc2[p] += w * f2
+            acc3[p] += w * f3
+            acc4[p] += w
+            weights[p] = w
+            running[p] = after if draw else (-t if stop else t)
+            taken[p] = k if draw else taken[p]
+            stopped += stop
+            pairs += draw
+        if measure:
+            for j in range(run):
+                drawn += weights[first + j]
+    return drawn, stopped, run * max(b1 + 1 - b0, 0), pairs
 
 
-@njit(parallel=True, cache=True, nogil=True)
+@njit(cache=True, nogil=True)
 def composite_backward(
     scene: tuple,
     tile_order: np.ndarray,
@@ -284,24 +381,29 @@ def composite_backward(
     transmittance: np.ndarray,
     last: np.ndarray,
     pair_grads: np.ndarray,
+    thread: int,
     threads: int,
 ) -> None:  # pragma: no cover - compiled
-    """The gradient of Σ over pixels of grad_sums · sums, per tile–Gaussian pair, on
-    `threads` threads.
+    """The gradient of Σ over pixels of grad_sums · sums, per tile–Gaussian pair, for tiles
+    tile_order[thread], tile_order[thread + threads], … (one call per thread).
 
     grad_sums [H, W, 5] is float64; transmittance and last are what `composite_forward`
-    left. Writes pair_grads [M, `PAIR_GRADS`] for every pair of the tiles in `tile_order`.
+    left. Writes pair_grads [M, `PAIR_GRADS`] for every pair of those tiles.
     With w = α T and s = ∂L/∂(Σ w f) · f for a pixel, ∂L/∂α of pair k is
     T_k (s_k − R_k), where R_k = Σ_{j>k} s_j w_j / T_{k+1} is carried back to front:
     R_{k−1} = s_k α_k + (1 − α_k) R_k.
     """
-    for thread in prange(threads):
-        for i in range(thread, tile_order.shape[0], threads):
-            _backward_tile(scene, tile_order[i], layout, limits, grad_sums, transmittance,
-                           last, pair_grads)  # fmt: skip
+    for i in range(thread, tile_order.shape[0], threads):
+        _backward_tile(scene, tile_order[i], layout, limits, grad_sums, transmittance,
+                       last, pair_grads)  # fmt: skip
 
 
-@njit(cache=True, nogil=True)
+# Two flags make the per-cell loop vectorise: division without numba's zero check (1 − α
+# is at least 0.01), and sums over a pair's cells that LLVM may reassociate into one
+# partial sum per vector lane. That order is fixed by the compiled code, so gradients are
+# still the same on every run and at every thread count; they differ from a sum in cell
+# order only in rounding.
+@njit(cache=True, nogil=True, error_model="numpy", fastmath={"reassoc"})
 def _backward_tile(
     scene: tuple,
     tile: int,
@@ -316,26 +418,29 @@ def _backward_tile(
     pair any pixel drew."""
     gaussian, tile_start, tile_count = scene[4], scene[5], scene[6]
     x0, y0, x1, y1 = _tile_box(tile, layout)
-    pixels = (x1 - x0) * (y1 - y0)
-    trans = np.empty(pixels)
-    rest = np.zeros(pixels)
-    taken = np.empty(pixels, dtype=np.int64)
-    upstream = np.empty((pixels, 5))
-    for y in range(y0, y1):
-        for x in range(x0, x1):
-            p = (y - y0) * (x1 - x0) + x - x0
-            trans[p] = transmittance[y, x]
-            taken[p] = last[y, x]
+    width, rows = x1 - x0, y1 - y0
+    centres = _centres(x0, y0, width, rows)
+    cells = centres[0].shape[0]
+    trans = np.ones(cells)
+    rest = np.zeros(cells)
+    taken = np.full(cells, -1, dtype=np.int64)  # the padding draws nothing
+    upstream = (np.zeros(cells), np.zeros(cells), np.zeros(cells), np.zeros(cells),
+                np.zeros(cells))  # fmt: skip
+    for r in range(rows):
+        for i in range(width):
+            p = _cell(r, i, rows)
+            trans[p] = transmittance[y0 + r, x0 + i]
+            taken[p] = last[y0 + r, x0 + i]
             for j in range(5):
-                upstream[p, j] = grad_sums[y, x, j]
+                upstream[j][p] = grad_sums[y0 + r, x0 + i, j]
+    log_alpha_min = math.log(limits[0])
     start = tile_start[tile]
-    deepest = taken.max() if pixels > 0 else -1
+    deepest = taken.max() if cells > 0 else -1
     pair_grads[start + deepest + 1 : start + tile_count[tile]] = 0.0
     for k in range(deepest, -1, -1):
-        grad = pair_grads[start + k]
-        grad[:] = 0.0
-        _backward_gaussian(scene, gaussian[start + k], k, (x0, y0, x1, y1), limits, trans,
-                           rest, taken, upstream, grad)  # fmt: skip
+        _backward_gaussian(scene, gaussian[start + k], k, (x0, y0, x1, y1), limits,
+                           log_alpha_min, centres, trans, rest, taken, upstream,
+                           pair_grads[start + k])  # fmt: skip
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -345,59 +450,60 @@ def _backward_gaussian(
     k: int,
     box: tuple,
     limits: tuple,
+    log_alpha_min: float,
+    centres: tuple,
     trans: np.ndarray,
     rest: np.ndarray,
     taken: np.ndarray,
-    upstream: np.ndarray,
+    upstream: tuple,
     grad: np.ndarray,
 ) -> None:  # pragma: no cover - compiled
-    """Add Gaussian `g`'s gradients over the tile's pixels to `grad`, and step each
-    pixel's transmittance and R back past it."""
-    means2d, conics, log_opacity, features = scene[0], scene[1], scene[2], scene[3]
-    x0, y0, x1, y1 = box
-    scratch = features  # the dtype to round to
-    a_min = _to_dtype(scratch, limits[0])
-    a_max = _to_dtype(scratch, limits[1])
-    mx, my, lo = means2d[g, 0], means2d[g, 1], log_opacity[g]
-    a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
-    reach = 2.0 * (lo - math.log(limits[0]) + _SKIP_MARGIN)
-    if not reach > 0.0:
-        return
+    """Write Gaussian `g`'s gradients over the tile's pixels to grad [`PAIR_GRADS`], and
+    step each pixel's transmittance and R back past it. Straight-line per cell over the
+    same runs of cells as `_forward_gaussian`: a cell the pair did not draw adds zeros and
+    keeps its state."""
+    features = scratch = scene[3]  # scratch: the dtype to round to
+    a_min, a_max, _ = _thresholds(scratch, limits)
+    mx, my, lo, a, b, c, r0, r1, b0, b1 = _footprint(scene, g, box, log_alpha_min)
     f0, f1, f2, f3 = features[g, 0], features[g, 1], features[g, 2], features[g, 3]
-    row_lo, row_hi = _row_range(my, a, b, c, reach, y0, y1)
-    for y in range(row_lo, row_hi + 1):
-        col_lo, col_hi, dy = _row_span(mx, my, a, b, c, reach, y, x0, x1)
-        row = (y - y0) * (x1 - x0) - x0
-        for x in range(col_lo, col_hi + 1):
-            p = row + x
-            if k > taken[p]:
-                continue
-            dx = x + 0.5 - mx
-            alpha, clamped = _alpha(scratch, lo, (a, b, c), dx, dy, a_max)
-            if alpha < a_min:
-                continue
-            keep = float(_to_dtype(scratch, 1.0 - alpha))
+    u0s, u1s, u2s, u3s, u4s = upstream
+    xs, ys = centres
+    column_cells = (box[3] - box[1]) * LANES
+    run = max(r1 + 1 - r0, 0) * LANES
+    g_mx = g_my = g_a = g_b = g_c = g_lo = g_r = g_g = g_bl = g_d = abs_x = abs_y = 0.0
+    for block in range(b0, b1 + 1):
+        first = block * column_cells + r0 * LANES
+        for j in range(run):
+            p = np.uint64(first + j)
+            dx, dy = xs[p] - mx, ys[p] - my
+            raw = _exp(scratch, _exponent(lo, a, b, c, dx, dy))
+            alpha = min(raw, a_max)
+            live = (k <= taken[p]) & (alpha >= a_min)
+            shape = live & (not raw > a_max)  # α not clamped: it moves with the shape
+            al, keep = float(alpha), float(_to_dtype(scratch, 1.0 - alpha))
             t_before = trans[p] / keep
-            al = float(alpha)
-            w = al * t_before
-            u = upstream[p]
-            s = u[0] * f0 + u[1] * f1 + u[2] * f2 + u[3] * f3 + u[4]
-            for j in range(4):
-                grad[6 + j] += w * u[j]
-            d_alpha = t_before * (s - rest[p])
-            rest[p] = s * al + keep * rest[p]
-            trans[p] = t_before
-            if not clamped:
-                d_exp = d_alpha * al
-                g_mx, g_my = d_exp * (a * dx + b * dy), d_exp * (b * dx + c * dy)
-                grad[0] += g_mx
-                grad[1] += g_my
-                grad[10] += abs(g_mx)
-                grad[11] += abs(g_my)
-                grad[2] -= 0.5 * d_exp * dx * dx
-                grad[3] -= d_exp * dx * dy
-                grad[4] -= 0.5 * d_exp * dy * dy
-                grad[5] += d_exp
+            w = al * t_before if live else 0.0
+            u0, u1, u2, u3 = u0s[p], u1s[p], u2s[p], u3s[p]
+            s = u0 * f0 + u1 * f1 + u2 * f2 + u3 * f3 + u4s[p]
+            g_r += w * u0 if live else 0.0
+            g_g += w * u1 if live else 0.0
+            g_bl += w * u2 if live else 0.0
+            g_d += w * u3 if live else 0.0
+            d_exp = t_before * (s - rest[p]) * al if shape else 0.0
+            rest[p] = s * al + keep * rest[p] if live else rest[p]
+            trans[p] = t_before if live else trans[p]
+            d_mx = d_exp * (a * dx + b * dy) if shape else 0.0
+            d_my = d_exp * (b * dx + c * dy) if shape else 0.0
+            g_mx += d_mx
+            g_my += d_my
+            abs_x += abs(d_mx)
+            abs_y += abs(d_my)
+            g_a -= 0.5 * d_exp * dx * dx if shape else 0.0
+            g_b -= d_exp * dx * dy if shape else 0.0
+            g_c -= 0.5 * d_exp * dy * dy if shape else 0.0
+            g_lo += d_exp
+    grad[0], grad[1], grad[2], grad[3], grad[4], grad[5] = g_mx, g_my, g_a, g_b, g_c, g_lo
+    grad[6], grad[7], grad[8], grad[9], grad[10], grad[11] = g_r, g_g, g_bl, g_d, abs_x, abs_y
 
 
 @njit(cache=True, nogil=True)

@@ -8,6 +8,7 @@ from __future__ import annotations
 from dataclasses import replace
 from typing import Any
 
+import numpy as np
 import pytest
 import torch
 from torch import Tensor
@@ -334,3 +335,35 @@ def test_the_absolute_gradient_bounds_the_gradient_and_equals_it_on_one_pixel(
                 assert float((absgrad - grad).max()) > 0.1 * float(absgrad.max())
             else:
                 assert float((absgrad - grad).abs().max()) <= slack
+
+
+def test_the_vectorised_exponential_is_the_correctly_rounded_one() -> None:
+    # In float32, α = exp(exponent) comes from a polynomial in float64 (libm's expf is a
+    # call, which does not vectorise). Rounded to float32 it must be the correctly rounded
+    # exponential, the float64 exp of the same float32 rounded once, wherever float32 is
+    # normal; and within an ulp of PyTorch's expf, which cpu-reference uses.
+    from numba import njit
+
+    from dyngs.renderers.tile_kernels import _exp_nonpositive
+
+    @njit(cache=False)
+    def each(x: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
+        out = np.empty(x.shape[0], dtype=np.float32)
+        for i in range(x.shape[0]):
+            out[i] = np.float32(_exp_nonpositive(np.float64(x[i])))
+        return out
+
+    rng = np.random.default_rng(0)
+    x = np.concatenate([
+        -rng.random(1_000_000, dtype=np.float32) * 87,  # every normal exponential
+        -rng.random(100_000, dtype=np.float32) * 6,  # where α ≥ 1/255 is decided
+        np.float32([0.0, -0.0, -1e-30, -1e-7, np.log(1 / 255), np.log(0.99), -87.0]),
+    ]).astype(np.float32)  # fmt: skip
+    got = each(x)
+    want = np.exp(x.astype(np.float64)).astype(np.float32)
+    assert np.array_equal(got, want)
+    torch_exp = torch.exp(torch.from_numpy(x)).numpy()
+    assert np.all(np.abs(got - torch_exp) <= np.spacing(want))
+    # Above 0 it is clamped (α is then clamped to alpha_max anyway); far below, it is 0.
+    assert each(np.float32([0.5, 80.0])).tolist() == [1.0, 1.0]
+    assert each(np.float32([-200.0, -1e30]))[0] < 1e-44
