@@ -22,7 +22,6 @@ import importlib.util
 import sys
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
@@ -183,8 +182,7 @@ class _Plan:
 
 # Kernel launches are serialised: numba's fallback threading layer (workqueue) must not be
 # entered from two threads at once, and two renders would only share the cores anyway.
-# Re-entrant, because a compositing launch holds it around its first, compiling, call.
-_LOCK = threading.RLock()
+_LOCK = threading.Lock()
 _COMPILED: set[str] = set()
 
 
@@ -197,39 +195,14 @@ def _thread_count(threads: int | None) -> int:
 
 
 def _launch(kernel: Any, threads: int | None, *args: Any) -> None:
-    """Run a compositing kernel on the configured threads: one call per thread, thread j
-    taking tiles j, j + T, j + 2T, … of the busiest-first order. The kernels release the
-    GIL, so plain Python threads run them side by side; numba's own parallel loops are not
-    used here because functions they call are compiled without LLVM's loop vectoriser
-    (measured: the per-cell loops ran 2.6× slower)."""
+    """Run a compositing kernel (it takes the thread count last, to deal tiles)."""
     count = _thread_count(threads)
-    dtype = str(args[0][3].dtype)
-    with _LOCK:
-        first = f"{kernel.__name__}:{dtype}" not in _COMPILED
-        if first:  # thread 0's share alone, so that it compiles the kernel once
-            _run(kernel, 1, dtype, *args, 0, count)
-        shares = [_pool(count).submit(kernel, *args, j, count) for j in range(1, count)]
-        if not first:
-            kernel(*args, 0, count)
-        for share in shares:
-            share.result()
-
-
-_POOLS: dict[int, ThreadPoolExecutor] = {}
-
-
-def _pool(count: int) -> ThreadPoolExecutor:
-    """A pool of `count` − 1 worker threads, kept for the process (the caller's thread
-    takes the first share of the tiles)."""
-    with _LOCK:
-        if count not in _POOLS:
-            _POOLS[count] = ThreadPoolExecutor(count - 1, thread_name_prefix="cpu-tile")
-        return _POOLS[count]
+    _run(kernel, count, str(args[0][3].dtype), *args, count)
 
 
 def _run(kernel: Any, count: int, dtype: str, *args: Any) -> None:
-    """Run a kernel on `count` threads (numba's, for kernels with parallel loops); the first
-    call of a process that has to compile it says so, and how long it took."""
+    """Run a kernel on `count` threads; the first call of a process that has to compile it
+    says so, and how long it took."""
     import numba
 
     key = f"{kernel.__name__}:{dtype}"
