@@ -73,7 +73,7 @@ def _to_dtype_compiled(like, value):  # type: ignore[no-untyped-def]  # pragma: 
 LANES = 8
 """Columns of a block: a tile's pixel state is laid out block by block, each block LANES
 columns wide (8 float64 lanes fill one AVX-512 register), and within a block row by row,
-so the cells of a Gaussian's rows within one block are one contiguous run (see `_Cells`).
+so the cells of a Gaussian's rows within one block are one contiguous run (`_cell`).
 Columns past the image in the last block are padding, stopped from the start."""
 
 _LN2_HI = 0.6931471803691238  # ln 2 in two parts (Cody and Waite 1980): n·_LN2_HI is exact
@@ -83,8 +83,8 @@ _LN2_LO = 1.9082149292705877e-10
 # Not inlined by numba but by LLVM: a numba-level inline would take the instructions into
 # the caller's fastmath flags (the backward kernel reassociates its sums), and this
 # function's rounding must stay as written. The same for `_exponent`. `contract` lets LLVM
-# fuse each multiply-add of the polynomial into one FMA, rounded once (the test below
-# holds the result to the correctly rounded float32 either way).
+# fuse each multiply-add of the polynomial into one FMA, rounded once (the test in
+# tests/renderers/test_cpu_tile.py holds the result to the correctly rounded float32).
 @njit(cache=True, nogil=True, fastmath={"contract"})
 def _exp_nonpositive(x: float) -> float:  # pragma: no cover - compiled
     """exp(x) in float64 for −103 ≤ x ≤ 0 (x is clamped to that range), to ~1e-15
@@ -126,12 +126,17 @@ def _exp(like: np.ndarray, exponent: float) -> float:  # pragma: no cover - see 
     return float(like.dtype.type(np.exp(rounded)))
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _expf(exponent: float) -> np.float32:  # pragma: no cover - compiled
+    """The exponent rounded to float32, its exponential correctly rounded to float32
+    (PyTorch's vectorised expf, which the reference uses, is within an ulp of it)."""
+    return np.float32(_exp_nonpositive(np.float64(np.float32(exponent))))
+
+
 @overload(_exp, inline="always")
 def _exp_compiled(like, exponent):  # type: ignore[no-untyped-def]  # pragma: no cover
     if isinstance(like, types.Array) and like.dtype == types.float32:
-        # The exponent rounded to float32, its exponential correctly rounded to float32
-        # (PyTorch's vectorised expf, which the reference uses, is within an ulp of it).
-        return lambda like, exponent: np.float32(_exp_nonpositive(np.float64(np.float32(exponent))))
+        return lambda like, exponent: _expf(exponent)
     return lambda like, exponent: np.exp(np.float64(exponent))
 
 
@@ -190,8 +195,8 @@ def _cell(r: int, i: int, rows: int) -> int:  # pragma: no cover - compiled
 
 @njit(cache=True, nogil=True, inline="always")
 def _centres(x0: int, y0: int, width: int, rows: int) -> tuple:  # pragma: no cover
-    """The pixel centres (x + ½, y + ½) of a tile's cells, as two float64 arrays, and the
-    number of cells (padding included)."""
+    """The pixel centres (x + ½, y + ½) of a tile's cells (padding included), as two
+    float64 arrays."""
     cells = -(-width // LANES) * LANES * rows
     xs, ys = np.empty(cells), np.empty(cells)
     for r in range(rows):

@@ -357,7 +357,7 @@ def test_the_vectorised_exponential_is_the_correctly_rounded_one() -> None:
     x = np.concatenate([
         -rng.random(1_000_000, dtype=np.float32) * 87,  # every normal exponential
         -rng.random(100_000, dtype=np.float32) * 6,  # where α ≥ 1/255 is decided
-        np.float32([0.0, -0.0, -1e-30, -1e-7, np.log(1 / 255), np.log(0.99), -87.0]),
+        np.array([0.0, -0.0, -1e-30, -1e-7, np.log(1 / 255), np.log(0.99), -87.0]),
     ]).astype(np.float32)  # fmt: skip
     got = each(x)
     want = np.exp(x.astype(np.float64)).astype(np.float32)
@@ -365,5 +365,5 @@ def test_the_vectorised_exponential_is_the_correctly_rounded_one() -> None:
     torch_exp = torch.exp(torch.from_numpy(x)).numpy()
     assert np.all(np.abs(got - torch_exp) <= np.spacing(want))
     # Above 0 it is clamped (α is then clamped to alpha_max anyway); far below, it is 0.
-    assert each(np.float32([0.5, 80.0])).tolist() == [1.0, 1.0]
-    assert each(np.float32([-200.0, -1e30]))[0] < 1e-44
+    assert each(np.array([0.5, 80.0], dtype=np.float32)).tolist() == [1.0, 1.0]
+    assert each(np.array([-200.0, -1e30], dtype=np.float32))[0] < 1e-44
