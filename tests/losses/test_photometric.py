@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 from kornia.losses import ssim_loss
+from kornia.metrics import ssim as kornia_ssim
 
 from dyngs.losses.photometric import dssim, fit_window, l1, photometric, ssim_map
 
@@ -132,3 +133,31 @@ def test_shape_mismatch_is_an_error() -> None:
         l1(torch.zeros(2, 2, 3), torch.zeros(2, 3, 3))
     with pytest.raises(ValueError, match="mask"):
         l1(torch.zeros(2, 2, 3), torch.zeros(2, 2, 3), torch.ones(2, 2, 3))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("padding", ["same", "valid"])
+@pytest.mark.parametrize(
+    ("height", "width", "window"), [(64, 48, 11), (17, 30, 11), (9, 9, 7), (3, 5, 11)]
+)
+def test_ssim_map_is_kornias(dtype: torch.dtype, padding: str, height: int, width: int,
+                             window: int) -> None:  # fmt: skip
+    # The map batches kornia's five moment filters into one call; it must be kornia's
+    # `metrics.ssim` (eps 0), values and gradients, for every padding and window fit.
+    gen = torch.Generator().manual_seed(height * width)
+    pred = torch.rand(height, width, 3, generator=gen, dtype=dtype, requires_grad=True)
+    target = torch.rand(height, width, 3, generator=gen, dtype=dtype)
+    ours = ssim_map(pred, target, window, padding=padding)  # type: ignore[arg-type]
+    fitted = fit_window(window, height, width, padding)  # type: ignore[arg-type]
+    leaf = pred.detach().clone().requires_grad_(True)
+    theirs = kornia_ssim(leaf.permute(2, 0, 1)[None], target.permute(2, 0, 1)[None], fitted,
+                         max_val=1.0, eps=0.0, padding=padding)[0].permute(1, 2, 0)  # fmt: skip
+    tolerance = 1e-6 if dtype == torch.float32 else 1e-13
+    assert ours.shape == theirs.shape
+    assert float((ours - theirs).abs().max()) <= tolerance
+    weights = torch.rand(ours.shape, generator=gen, dtype=dtype)
+    (ours * weights).sum().backward()
+    (theirs * weights).sum().backward()
+    assert pred.grad is not None and leaf.grad is not None
+    scale = float(leaf.grad.abs().max())
+    assert float((pred.grad - leaf.grad).abs().max()) <= tolerance * max(scale, 1.0)
