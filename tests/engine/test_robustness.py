@@ -17,7 +17,7 @@ import torch
 
 from dyngs.datamanagers.procedural import demo_path
 from dyngs.engine.checkpoint import load_checkpoint
-from dyngs.engine.trainer import TrainingDiverged
+from dyngs.engine.trainer import TrainingDiverged, all_finite
 from dyngs.engine.writer import NullWriter
 from dyngs.renderers.base import RenderOutput
 from tests.engine.helpers import TINY_SCENE, assert_same_state, tiny_trainer
@@ -40,6 +40,32 @@ class PoisonedRenderer:
 def _snapshot(trainer) -> dict[str, torch.Tensor]:  # type: ignore[no-untyped-def]
     state = trainer.model.state_dict()
     return {k: v.clone() if isinstance(v, torch.Tensor) else v for k, v in state.items()}
+
+
+@pytest.mark.parametrize("bad", [None, "nan", "inf", "-inf", "loss"])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_the_fused_finiteness_check_is_the_per_tensor_one(
+    bad: str | None, dtype: torch.dtype
+) -> None:
+    # all_finite checks every gradient in one fused call per dtype; the reference is an
+    # isfinite per tensor. Gradients of two dtypes, one missing, the bad value in each.
+    gen = torch.Generator().manual_seed(7)
+    params = [torch.nn.Parameter(torch.zeros(n, dtype=d))
+              for n, d in ((1000, dtype), (7, torch.float32), (3, dtype), (50, dtype))]  # fmt: skip
+    optimizer = torch.optim.SGD([{"params": params[:2]}, {"params": params[2:]}], lr=0.1)
+    for where in range(3):
+        for p in params[:3]:
+            p.grad = torch.randn(p.shape, generator=gen, dtype=p.dtype)
+        loss = torch.tensor(float("nan") if bad == "loss" else 0.5)
+        if bad in ("nan", "inf", "-inf"):
+            params[where].grad[-1] = float(bad)  # type: ignore[index]
+        before = [p.grad.clone() for p in params[:3]]  # type: ignore[union-attr]
+        want = bool(torch.isfinite(loss)) and all(
+            bool(torch.isfinite(p.grad).all()) for p in params if p.grad is not None
+        )
+        assert bool(all_finite(loss, optimizer)) == want == (bad is None)
+        for p, old in zip(params[:3], before, strict=True):  # the check leaves them as they were
+            assert torch.equal(p.grad.nan_to_num(), old.nan_to_num())  # type: ignore[union-attr]
 
 
 def test_non_finite_steps_are_skipped_and_counted(tmp_path: Path) -> None:
