@@ -127,6 +127,12 @@ class TrainConfig:
     frontier_span: float = 0.1
     """Width in t of the newest part of the window that `frontier-share` draws from (the
     latest views when none is that recent)."""
+    time_jitter: float = 0.1
+    """Annealed smooth training (Deformable 3D Gaussians, Yang et al. 2024, β = 0.1): the
+    model draws each training view at t + N(0, 1) · time-jitter · Δt · (1 − p), Δt the
+    median spacing of the training times and p the run's progress, so that the
+    deformation and the lifetimes are fitted around each time rather than at it alone,
+    which is what views between the training times ask for. 0 turns it off."""
     batch_views: int = 1
     """Views per training step, the loss averaged over them. Under torchrun each process
     renders its share of them (docs/DISTRIBUTED.md), so P processes need at least P."""
@@ -192,6 +198,8 @@ class TrainConfig:
             raise ConfigError(f"--frontier-share must be in [0, 1], got {self.frontier_share}")
         if not 0.0 < self.frontier_span <= 1.0:
             raise ConfigError(f"--frontier-span must be in (0, 1], got {self.frontier_span}")
+        if not self.time_jitter >= 0.0:
+            raise ConfigError(f"--time-jitter must be ≥ 0, got {self.time_jitter}")
         if self.batch_views < 1:
             raise ConfigError(f"--batch-views must be ≥ 1, got {self.batch_views}")
         if not self.collective_timeout > 0:

@@ -301,6 +301,9 @@ class DataManager:
         self._stratum_of = {i: k for k, views in enumerate(self.strata) for i in views}
         self._by_time = sorted(range(len(train_times)), key=train_times.__getitem__)
         self._sorted_times = [train_times[i] for i in self._by_time]
+        distinct = torch.tensor(sorted(set(train_times)), dtype=torch.float64)
+        self.time_spacing = float(distinct.diff().median()) if len(distinct) > 1 else 0.0
+        """Median spacing of the distinct training times (0 for a single time)."""
 
     def _serve(
         self, scene: SceneData, budget: int, held: set[int], evaluates: bool = True

@@ -50,6 +50,14 @@ class TimeBudget:
     marks: list[tuple[int, float]] = field(default_factory=list)
     """(step, training seconds) at the latest log intervals."""
 
+    @classmethod
+    def of(cls, minutes: float | None, steps: int, sized: bool) -> TimeBudget | None:
+        """The budget of `--time-budget MINUTES` for a run of `steps` (None without one);
+        a data-sized step count may grow `GROWTH` times, a given one is the ceiling."""
+        if minutes is None:
+            return None
+        return cls(60.0 * minutes, steps * GROWTH if sized else steps)
+
     def plan(self, step: int, elapsed: float, planned: int) -> int | None:
         """The new step count after `step` steps in `elapsed` seconds, or None to keep
         `planned`."""

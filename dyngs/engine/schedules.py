@@ -64,6 +64,13 @@ def time_window(config: TrainConfig, step: int) -> float:
     return min(1.0, config.warmup_time + widened)
 
 
+def time_jitter(config: TrainConfig, step: int) -> float:
+    """Standard deviation of the training views' time noise at `step`, in units of the
+    training times' spacing: `time_jitter`, decaying linearly to 0 at the schedule's end
+    (Yang et al. 2024 decay theirs over a fixed 20 000 steps, longer than most runs here)."""
+    return config.time_jitter * max(0.0, 1.0 - position(config, step) / max(length(config), 1))
+
+
 def window_full_step(config: TrainConfig) -> float:
     """Position (`position`) at which the time window spans the whole sequence."""
     return config.warmup_iters + config.time_ramp * length(config)

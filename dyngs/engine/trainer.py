@@ -32,7 +32,7 @@ from dyngs.engine.batch import (
     step_loss,
     step_statistics,
 )
-from dyngs.engine.budget import GROWTH, TimeBudget
+from dyngs.engine.budget import TimeBudget
 from dyngs.engine.capacity import pixel_footprint, resolve_capacity, training_steps_why
 from dyngs.engine.checkpoint import (
     load_checkpoint,
@@ -111,6 +111,17 @@ def quarantine_nonfinite_gaussians(canonical: CanonicalGaussians) -> None:
             p.grad.masked_fill_(bad.reshape(-1, *[1] * (p.dim() - 1)), 0.0)
 
 
+def time_noise(config: TrainConfig, step: int, spacing: float, generator: torch.Generator
+               ) -> list[float]:  # fmt: skip
+    """The shift of the model's time for each of a step's views (`--time-jitter`), drawn in
+    view order. Nothing is drawn once the jitter is 0, so a run without it draws its
+    views as before; every process draws them all (see `Objective.other_times`)."""
+    scale = schedules.time_jitter(config, step) * spacing
+    if scale == 0.0:
+        return [0.0] * config.batch_views
+    return [scale * float(torch.randn((), generator=generator)) for _ in range(config.batch_views)]
+
+
 def all_finite(loss: Tensor, optimizer: torch.optim.Optimizer) -> Tensor:
     """Whether the loss and every gradient are finite (0-d, on the loss's device).
 
@@ -177,10 +188,7 @@ class Trainer:
         self.scene = scene or load_scene(config.data, config.dataset, seed=config.seed)
         self.sized_steps = config.max_iters is None
         config = resolve_capacity(config, self.scene)  # `self.config` once the lifecycle holds it
-        self.budget = None
-        if config.time_budget is not None:
-            ceiling = config.steps * GROWTH if self.sized_steps else config.steps
-            self.budget = TimeBudget(60.0 * config.time_budget, ceiling)
+        self.budget = TimeBudget.of(config.time_budget, config.steps, self.sized_steps)
         group.check_same(json.dumps(config_to_dict(config), sort_keys=True), "configs")
         self.data = DataManager(self.scene, config.dataset, self.device, self.generator,
                                 config.batch_views, (group.rank, group.size))  # fmt: skip
@@ -225,7 +233,8 @@ class Trainer:
         picks = self.next_views(step)
         probe = self.lifecycle.probe_degree()
         others = self.group.share(self.objective.other_times(model, cfg.batch_views))
-        views = [self._view(step, i, probe, t) for i, t in zip(picks, others, strict=True)]
+        shifts = self.group.share(time_noise(cfg, step, self.data.time_spacing, self.generator))
+        views = [self._view(step, probe, *draw) for draw in zip(picks, others, shifts, strict=True)]
         loss = step_loss(views, cfg.batch_views)
         quarantine_nonfinite_gaussians(model.canonical)
         stats = exchange(self.group, self.optimizer, loss, step_statistics(views),
@@ -248,13 +257,15 @@ class Trainer:
         first = views[0]
         return StepStats(loss.detach(), first.terms, first.out, first.batch, good)
 
-    def _view(self, step: int, index: int, probe: int | None, other: float | None) -> ViewResult:
-        """Training view `index`: drawn, its loss (divided by the step's view count) sent
-        backward, its densification statistics taken."""
+    def _view(
+        self, step: int, probe: int | None, index: int, other: float | None, shift: float
+    ) -> ViewResult:
+        """Training view `index`, the model at its time + `shift` (in [0, 1]): drawn, its loss
+        (over the step's view count) sent backward, its densification statistics taken."""
         model, views = self.model, self.config.batch_views
         batch = self.data.train_batch(index)
         started = time.perf_counter()
-        gaussians = model.at(batch.time, sh_degree=probe)
+        gaussians = model.at(min(1.0, max(0.0, batch.time + shift)), sh_degree=probe)
         self.counters.deformation_seconds += time.perf_counter() - started if model.deforms else 0
         out = self.lifecycle.render(self.renderer, gaussians, batch.camera, self.data.background)
         self.nonfinite_culled += out.num_nonfinite.to(self.nonfinite_culled.device)

@@ -1,6 +1,7 @@
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 from pathlib import Path
 
@@ -10,7 +11,7 @@ import torch
 from dyngs.datamanagers.datamanager import DataConfig
 from dyngs.engine import schedules
 from dyngs.engine.densify import DensifyConfig
-from dyngs.engine.trainer import Trainer
+from dyngs.engine.trainer import Trainer, time_noise
 from dyngs.engine.writer import NullWriter
 from dyngs.metrics import psnr
 from dyngs.model import GaussianConfig
@@ -106,6 +107,60 @@ def test_frontier_steps_train_on_the_newest_times_of_the_ramp(
     for _, window, time in draws:
         latest = max(t for t in times if t <= window)
         assert min(window - span, latest) <= time <= window
+
+
+@pytest.mark.parametrize("jitter", [0.0, 0.5])
+def test_views_are_drawn_at_jittered_times_that_settle_on_the_view_time(
+    tmp_path: Path, jitter: float, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Annealed smooth training: the model is drawn at the view's time plus noise whose
+    # deviation is jitter × the times' spacing × (1 − progress), clamped to [0, 1].
+    trainer = tiny_trainer(tmp_path, max_iters=30, time_jitter=jitter)
+    times = sorted(set(trainer.data.scene.train.times.tolist()))
+    spacing = trainer.data.time_spacing
+    gaps = [b - a for a, b in itertools.pairwise(times)]
+    assert max(gaps) - min(gaps) < 1e-6 and spacing == pytest.approx(gaps[0], rel=1e-6)
+    asked: list[float] = []
+    at = trainer.model.at
+
+    def drawn(t: float, **options):  # type: ignore[no-untyped-def]
+        asked.append(t)
+        return at(t, **options)
+
+    monkeypatch.setattr(trainer.model, "at", drawn)
+    batches: list[float] = []
+    train_batch = trainer.data.train_batch
+
+    def recorded(index: int):  # type: ignore[no-untyped-def]
+        batch = train_batch(index)
+        batches.append(batch.time)
+        return batch
+
+    monkeypatch.setattr(trainer.data, "train_batch", recorded)
+    for step in range(30):
+        trainer.train_step(step)
+    shifts = [a - b for a, b in zip(asked, batches, strict=True)]
+    assert all(0.0 <= t <= 1.0 for t in asked)
+    if jitter == 0:  # no noise, and no draw from the run's generator for it
+        assert shifts == [0.0] * 30
+        state = trainer.generator.get_state()
+        assert time_noise(trainer.config, 0, spacing, trainer.generator) == [0.0]
+        assert torch.equal(trainer.generator.get_state(), state)
+        return
+    for step, shift in enumerate(shifts):  # within 5 deviations of its step's scale
+        scale = schedules.time_jitter(trainer.config, step) * spacing
+        assert abs(shift) <= 5 * scale + 1e-7
+    assert sum(abs(d) > 1e-6 for d in shifts[:10]) >= 8  # early steps do move
+    assert max(abs(d) for d in shifts[:10]) > max(abs(d) for d in shifts[-3:])
+    assert schedules.time_jitter(trainer.config, 0) == jitter
+    assert schedules.time_jitter(trainer.config, 30) == 0.0
+
+
+def test_time_jitter_is_checked() -> None:
+    from dyngs.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="--time-jitter"):
+        tiny_config(time_jitter=-0.1)
 
 
 def test_frontier_settings_are_checked() -> None:
