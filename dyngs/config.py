@@ -127,12 +127,13 @@ class TrainConfig:
     frontier_span: float = 0.1
     """Width in t of the newest part of the window that `frontier-share` draws from (the
     latest views when none is that recent)."""
-    time_jitter: float = 0.1
-    """Annealed smooth training (Deformable 3D Gaussians, Yang et al. 2024, β = 0.1): the
-    model draws each training view at t + N(0, 1) · time-jitter · Δt · (1 − p), Δt the
+    time_jitter: float = 0.0
+    """Annealed smooth training (Deformable 3D Gaussians, Yang et al. 2024, who use 0.1):
+    the model draws each training view at t + N(0, 1) · time-jitter · Δt · (1 − p), Δt the
     median spacing of the training times and p the run's progress, so that the
-    deformation and the lifetimes are fitted around each time rather than at it alone,
-    which is what views between the training times ask for. 0 turns it off."""
+    deformation and the lifetimes are fitted around each time rather than at it alone.
+    Off by default: 0.1 gained 3000-step runs on average but lost in ten-minute ones
+    (docs/ACCURACY.md, "Annealed time jitter")."""
     batch_views: int = 1
     """Views per training step, the loss averaged over them. Under torchrun each process
     renders its share of them (docs/DISTRIBUTED.md), so P processes need at least P."""
