@@ -94,6 +94,13 @@ class CudaTileRenderer:
         if len(g) == 0:
             return self._background_only(g, camera, background, ready)
         inputs = self._inputs(g, camera, ready)
+        background = background.to(device=g.means.device, dtype=g.means.dtype)
+        # gsplat 1.5.3's packed path asserts a background of shape [channels] where its own
+        # `rasterization` hands over [cameras, channels], so every packed render with a
+        # background stopped (seen on an H200). Packed renders therefore composite onto
+        # black and add the background here: rgb + T·background, T = 1 − α, which is what
+        # gsplat's kernel adds, and autograd carries it through α.
+        own_background = self.config.packed
         rgbd, alpha, meta = self._rasterization(
             **inputs,
             width=camera.width,
@@ -104,18 +111,21 @@ class CudaTileRenderer:
             sh_degree=g.sh_degree,
             packed=self.config.packed,
             tile_size=self.config.tile_size,
-            backgrounds=background.to(device=g.means.device, dtype=g.means.dtype)[None],
+            backgrounds=None if own_background else background[None],
             render_mode="RGB+ED",
             absgrad=self.config.absgrad,
             rasterize_mode="antialiased" if self.config.antialiased else "classic",
         )
+        rgb = rgbd[0, ..., :3]
+        if own_background:
+            rgb = rgb + (1 - alpha[0]) * background
         means2d, radii = self._per_gaussian(meta, len(g))
         # gsplat may give a radius to a row it draws nothing of (one culled here, or too
         # faint: o < 1/255); as in the reference, such rows are not visible and have radius 0.
         visible = (radii > 0).all(dim=-1) & ready.finite & ready.in_depth
         visible &= inputs["opacities"] >= self.guards.alpha_min
         return RenderOutput(
-            rgb=rgbd[0, ..., :3],
+            rgb=rgb,
             alpha=alpha[0],
             depth=rgbd[0, ..., 3:4],
             means2d=means2d,

@@ -66,7 +66,8 @@ def _boundary_band(alpha: torch.Tensor) -> torch.Tensor:
 @needs_gpu
 @pytest.mark.parametrize("seed", range(4))
 @pytest.mark.parametrize("antialiased", [False, True])
-def test_images_match_the_reference(seed: int, antialiased: bool) -> None:
+@pytest.mark.parametrize("packed", [False, True])
+def test_images_match_the_reference(seed: int, antialiased: bool, packed: bool) -> None:
     gaussians, camera, background = random_scene(
         200 + seed, 400, 97, 61, torch.float32, sh_degree=seed % 4
     )
@@ -74,7 +75,9 @@ def test_images_match_the_reference(seed: int, antialiased: bool) -> None:
     gaussians.opacities.clamp_(max=0.99)
     gaussians = gaussians.to("cuda")
     camera, background = camera.to("cuda"), background.cuda()
-    fast = CudaTileConfig(antialiased=antialiased).build()(gaussians, camera, background)
+    fast = CudaTileConfig(antialiased=antialiased, packed=packed).build()(
+        gaussians, camera, background
+    )
     slow = CpuReferenceConfig(antialiased=antialiased).build()(gaussians, camera, background)
     band = _boundary_band(slow.alpha) | _boundary_band(fast.alpha)
     for a, b in ((fast.rgb, slow.rgb), (fast.alpha, slow.alpha)):
@@ -86,13 +89,14 @@ def test_images_match_the_reference(seed: int, antialiased: bool) -> None:
 
 @needs_gpu
 @pytest.mark.parametrize("seed", range(3))
-def test_gradients_match_the_reference(seed: int) -> None:
+@pytest.mark.parametrize("packed", [False, True])
+def test_gradients_match_the_reference(seed: int, packed: bool) -> None:
     base, camera, background = random_scene(300 + seed, 150, 64, 48, torch.float32, sh_degree=1)
     base.opacities.clamp_(max=0.99)
     camera, background = camera.to("cuda"), background.cuda()
     weights = torch.rand(48, 64, 3, generator=torch.Generator().manual_seed(seed)).cuda()
     grads = []
-    for config in (CudaTileConfig(), CpuReferenceConfig()):
+    for config in (CudaTileConfig(packed=packed), CpuReferenceConfig()):
         g = base.to("cuda")
         leaves = [
             t.clone().requires_grad_(True)
