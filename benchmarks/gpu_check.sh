@@ -4,6 +4,7 @@
 #
 #   bash benchmarks/gpu_check.sh prepare     # here: wheels into .whl/, scenes into .gpu/
 #   bash benchmarks/gpu_check.sh run         # there, carrying [".whl", ".gpu"]
+#   bash benchmarks/gpu_check.sh solo        # there: the tests and two scenes alone
 #
 # `run` installs the wheels and JIT-compiles gsplat (about a minute on 16 cores), then
 # runs two short smoke trainings (the demo, and a MuJoCo scene at its full 800²) through
@@ -41,7 +42,8 @@ if [ "${1:-}" = prepare ]; then
     du -sh .whl .gpu
     exit 0
 fi
-[ "${1:-}" = run ] || { echo "usage: $0 prepare|run" >&2; exit 2; }
+mode=${1:-}
+[ "$mode" = run ] || [ "$mode" = solo ] || { echo "usage: $0 prepare|run|solo" >&2; exit 2; }
 
 T0=$(date +%s)
 OUT=${OUT:-/tmp/gpu-check}
@@ -67,6 +69,17 @@ train() {  # seconds, name, args...
     return $rc
 }
 
+report() {  # summary.json (each run's metrics.json) and the ends of the train logs
+    python3 - > "$OUT/summary.json" <<'PY'
+import json, pathlib
+runs = sorted(pathlib.Path("/tmp/runs").glob("*/metrics.json"))
+print(json.dumps({m.parent.name: json.loads(m.read_text()) for m in runs}, indent=1))
+PY
+    for f in /tmp/runs/*.log; do echo "=== $f"; grep -v "it/s *$" "$f" | tail -30; done \
+        > "$OUT/train-logs.txt"
+    log end
+}
+
 # Two pytest runs, so that a crash in gsplat's kernels leaves the other's report.
 ( timeout 150 python3 -m pytest -q -rs -p no:cacheprovider --tb=short -k cuda \
     tests/renderers/test_cuda_tile.py tests/datamanagers tests/fields tests/test_cli.py \
@@ -74,7 +87,27 @@ train() {  # seconds, name, args...
   log "pytest parity rc=$? $(tail -1 "$OUT/pytest-parity.log")"
   timeout 150 python3 -m pytest -q -rs -p no:cacheprovider --tb=short -k cuda \
     tests/renderers/test_hard_cases.py > "$OUT/pytest-hard-cases.log" 2>&1
-  log "pytest hard cases rc=$? $(tail -1 "$OUT/pytest-hard-cases.log")" ) &
+  log "pytest hard cases rc=$? $(tail -1 "$OUT/pytest-hard-cases.log")"
+  python3 benchmarks/gpu_anisotropy.py > "$OUT/anisotropy.log" 2>&1 ) &
+tests=$!
+
+if [ "$mode" = solo ]; then
+    # `solo`: beside the tests, two MuJoCo scenes at 800², side by side rather than eight,
+    # for TRAIN_MINUTES each, with the GPU's load sampled every 5 s: how fast one run goes
+    # when it is not sharing the machine, and what more steps give at full resolution.
+    nvidia-smi --query-gpu=utilization.gpu,memory.used --format=csv -l 5 > "$OUT/gpu-load.csv" &
+    load=$!
+    minutes=${TRAIN_MINUTES:-2}
+    for s in texture thin_structure; do
+        train $(( ${minutes%.*} * 60 + 180 )) "$s-800-solo" --data "../shared/data/mujoco-$s" \
+            --background 1 1 1 --time-budget "$minutes" &
+        pids="${pids:-} $!"
+    done
+    wait $pids "$tests"
+    kill "$load"
+    report
+    exit 0
+fi
 
 smoke="--max-iters 60 --warmup-iters 20"
 train 150 smoke-demo --data demo $smoke & a=$!
@@ -96,11 +129,4 @@ for s in $MUJOCO; do
         --time-budget "$minutes" &
 done
 wait
-python3 - > "$OUT/summary.json" <<'PY'
-import json, pathlib
-runs = sorted(pathlib.Path("/tmp/runs").glob("*/metrics.json"))
-print(json.dumps({m.parent.name: json.loads(m.read_text()) for m in runs}, indent=1))
-PY
-for f in /tmp/runs/*.log; do echo "=== $f"; grep -v "it/s *$" "$f" | tail -30; done \
-    > "$OUT/train-logs.txt"
-log end
+report

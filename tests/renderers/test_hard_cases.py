@@ -353,9 +353,19 @@ def test_scale_of_1e4_covers_the_whole_image(setup: Setup) -> None:
     _assert_matches_brute_force(setup, drawn)
 
 
-def test_anisotropy_of_1e6(setup: Setup) -> None:
+def test_anisotropy_of_1e6(setup: Setup, request: pytest.FixtureRequest) -> None:
     # Needles: a long axis 1e6 times the short ones, turned out of the image plane, in a
     # few sizes (the longest spans 1e2 units through the camera's view).
+    if setup.renderer == "cuda-tile":
+        # A known limit of gsplat, measured on an H200 (benchmarks/gpu_anisotropy.py,
+        # docs/NUMERICS.md): its float32 projection draws the 1e2 × 1e-4 needle up to
+        # 1.7e-4 off, where cpu-reference in float32 on the same GPU stays within 2e-7 of
+        # float64. Strict, so a gsplat that draws it right turns this red.
+        request.applymarker(
+            pytest.mark.xfail(
+                strict=True, reason="gsplat's float32 projection of a 1e6-anisotropic needle"
+            )
+        )
     quats = [[0.9, 0.1, 0.3, 0.2], [0.6, -0.5, 0.2, 0.4], [0.3, 0.1, -0.9, 0.2]]
     g = _gaussians(
         [[0.1, 0.1, 2.0], [-0.3, 0.2, 3.0], [0.2, -0.2, 2.5]],
