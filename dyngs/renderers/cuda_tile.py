@@ -119,11 +119,15 @@ class CudaTileRenderer:
         rgb = rgbd[0, ..., :3]
         if own_background:
             rgb = rgb + (1 - alpha[0]) * background
-        means2d, radii = self._per_gaussian(meta, len(g))
+        ids = meta["gaussian_ids"] if self.config.packed else None
+        radii = self._rows(meta["radii"], ids, len(g))
+        if radii.ndim == 1:  # gsplat < 1.5 returns one radius per Gaussian
+            radii = radii[:, None].expand(-1, 2)
         # gsplat may give a radius to a row it draws nothing of (one culled here, or too
         # faint: o < 1/255); as in the reference, such rows are not visible and have radius 0.
         visible = (radii > 0).all(dim=-1) & ready.finite & ready.in_depth
         visible &= inputs["opacities"] >= self.guards.alpha_min
+        means2d, absgrad = self._screen_gradients(meta["means2d"], ids, len(g))
         return RenderOutput(
             rgb=rgb,
             alpha=alpha[0],
@@ -132,32 +136,45 @@ class CudaTileRenderer:
             radii=torch.where(visible[:, None], radii, 0).int(),
             visible=visible,
             num_nonfinite=ready.num_nonfinite,
-            means2d_absgrad=self._absgrad_sink(meta, len(g)),
+            means2d_absgrad=absgrad,
         )
 
-    def _absgrad_sink(self, meta: dict[str, Tensor], n: int) -> Tensor | None:
-        """A per-Gaussian [N, 2] buffer that backward fills with gsplat's per-pixel absolute
-        gradient, or None when it is not asked for. gsplat hangs it on its means2d tensor as
-        `.absgrad` inside its rasterizer's backward; a hook on that tensor runs once all of
-        its gradient is in, so after that backward, and copies it out."""
-        full = meta["means2d"]
-        if not (self.config.absgrad and full.requires_grad):
-            return None
-        sink = full.new_zeros(n, 2)
-        ids = meta.get("gaussian_ids") if self.config.packed else None
+    @staticmethod
+    def _rows(t: Tensor, ids: Tensor | None, n: int) -> Tensor:
+        """One row per Gaussian of a per-Gaussian output of gsplat: its first camera's rows,
+        or, in packed mode (which lists only the drawn Gaussians), scattered back by `ids`
+        with zeros elsewhere."""
+        if ids is None:
+            return t[0]
+        return t.new_zeros(n, *t.shape[1:]).index_copy(0, ids, t)
 
-        def fill(_grad: Tensor) -> None:
-            value = getattr(full, "absgrad", None)
-            if value is None:
-                return
+    def _screen_gradients(
+        self, full: Tensor, ids: Tensor | None, n: int
+    ) -> tuple[Tensor, Tensor | None]:
+        """The 2D means, one row per Gaussian, whose `.grad` backward fills, and a buffer it
+        fills with gsplat's absolute gradient (None unless asked for).
+
+        gsplat rasterizes from its own 2D means tensor, `full`, so no view or copy of it
+        that we hand out lies on the loss's path, and `retain_grad` on one stays None (so it
+        was: no run densified on a GPU until 2026-11-27, when a trained demo ended with
+        fewer Gaussians than it began with). A hook on `full` runs once all of its gradient
+        is in, after gsplat's backward has also hung its absolute gradient on it as
+        `.absgrad`, and copies both out, row by row."""
+        means2d = self._rows(full.detach(), ids, n)
+        if not full.requires_grad:
+            return means2d, None
+        absgrad = full.new_zeros(n, 2) if self.config.absgrad else None
+
+        def fill(grad: Tensor) -> None:
             with torch.no_grad():
-                if ids is None:
-                    sink.copy_(value.reshape(-1, n, 2)[0])
-                else:
-                    sink.index_copy_(0, ids, value.reshape(-1, 2))
+                rows = self._rows(grad, ids, n)
+                means2d.grad = rows if means2d.grad is None else means2d.grad + rows
+                value = getattr(full, "absgrad", None)
+                if absgrad is not None and value is not None:
+                    absgrad.copy_(self._rows(value, ids, n))
 
         full.register_hook(fill)
-        return sink
+        return means2d, absgrad
 
     @staticmethod
     def _background_only(
@@ -217,19 +234,3 @@ class CudaTileRenderer:
             "viewmats": viewmat.to(dtype)[None],
             "Ks": K[None],
         }
-
-    def _per_gaussian(self, meta: dict[str, Tensor], n: int) -> tuple[Tensor, Tensor]:
-        """2D means (keeping their gradient) and per-axis radii, one row per Gaussian."""
-        means2d, radii = meta["means2d"], meta["radii"]
-        if self.config.packed:
-            # Packed mode lists only the drawn Gaussians; scatter back to one row each.
-            ids = meta["gaussian_ids"]
-            means2d = means2d.new_zeros(n, 2).index_copy(0, ids, means2d)
-            radii = radii.new_zeros(n, *radii.shape[1:]).index_copy(0, ids, radii)
-        else:
-            means2d, radii = means2d[0], radii[0]
-        if radii.ndim == 1:  # gsplat < 1.5 returns one radius per Gaussian
-            radii = radii[:, None].expand(-1, 2)
-        if means2d.requires_grad:
-            means2d.retain_grad()
-        return means2d, radii

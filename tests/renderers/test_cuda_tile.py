@@ -107,10 +107,12 @@ def test_gradients_match_the_reference(seed: int, packed: bool) -> None:
             Gaussians(means, quats, scales, opacities, colors, 1), camera, background
         )
         (out.rgb * weights).sum().backward()
-        grads.append([t.grad for t in leaves])
+        # The 2D means' gradient too: densification reads it (and nothing else does).
+        grads.append([t.grad for t in leaves] + [out.means2d.grad])
     for name, fast, slow in zip(
-        ("means", "quats", "scales", "opacities", "colors"), *grads, strict=True
+        ("means", "quats", "scales", "opacities", "colors", "means2d"), *grads, strict=True
     ):
+        assert fast is not None and slow is not None, name
         scale = slow.abs().max().clamp_min(1e-12)
         relative = ((fast - slow).abs() / scale).flatten()
         # Relative 1e-3 for all but a bounded share (boundary-band pairs), stated here: 2 %.
@@ -139,6 +141,88 @@ def test_absolute_gradients_match_the_reference(packed: bool) -> None:
     relative = ((fast - slow).abs() / slow.abs().max()).flatten()
     assert float(slow.abs().max()) > 0
     assert float((relative > 1e-3).float().mean()) <= 0.02
+
+
+class _StandInSplat(torch.autograd.Function):
+    """A stand-in for gsplat's rasterize step, for the plumbing around it: every pixel is
+    a fixed weighted sum of the 2D means it is handed, and backward hangs an absolute
+    gradient on them as `.absgrad`, as gsplat's does (here |grad| + 1, to be told apart)."""
+
+    @staticmethod
+    def forward(ctx, means2d: torch.Tensor, weights: torch.Tensor, shape: tuple[int, ...]):  # type: ignore[no-untyped-def, override]
+        ctx.save_for_backward(means2d, weights)
+        ctx.shape = shape
+        return ((means2d * weights).sum() * torch.ones(shape, dtype=means2d.dtype)).clone()
+
+    @staticmethod
+    def backward(ctx, grad):  # type: ignore[no-untyped-def, override]
+        means2d, weights = ctx.saved_tensors
+        v_means2d = grad.sum() * weights
+        means2d.absgrad = v_means2d.abs() + 1
+        return v_means2d, None, None
+
+
+def _stand_in_rasterization(**kw: object):  # type: ignore[no-untyped-def]
+    """gsplat's `rasterization` in shape and in how its 2D means reach the loss: a pinhole
+    projection, packed mode listing every other Gaussian, the pixels from `_StandInSplat`."""
+    means, viewmats, Ks = kw["means"], kw["viewmats"], kw["Ks"]
+    assert isinstance(means, torch.Tensor) and isinstance(viewmats, torch.Tensor)
+    assert isinstance(Ks, torch.Tensor)
+    n, width, height = len(means), int(kw["width"]), int(kw["height"])  # type: ignore[call-overload]
+    cam = means @ viewmats[0, :3, :3].T + viewmats[0, :3, 3]
+    means2d = ((cam[:, :2] / cam[:, 2:]) * Ks[0, [0, 1], [0, 1]] + Ks[0, :2, 2])[None]
+    radii = torch.ones(1, n, 2, dtype=torch.int32)
+    meta: dict[str, torch.Tensor] = {}
+    if kw["packed"]:
+        ids = torch.arange(0, n, 2)
+        means2d, radii = means2d[0, ids], radii[0, ids]
+        meta["gaussian_ids"] = ids
+    weights = torch.rand(means2d.shape, generator=torch.Generator().manual_seed(3))
+    weights = weights.to(means2d.dtype)
+    rgbd = _StandInSplat.apply(means2d, weights, (1, height, width, 4))
+    alpha = torch.zeros(1, height, width, 1, dtype=means.dtype)
+    meta.update(means2d=means2d, radii=radii)
+    return rgbd, alpha, meta
+
+
+@pytest.mark.parametrize("packed", [False, True])
+def test_screen_gradients_reach_densification(packed: bool) -> None:
+    # Densification reads `out.means2d.grad` and `out.means2d_absgrad` after backward.
+    # gsplat rasterizes from its own 2D means, so a view of them handed out never got a
+    # gradient, and no run densified on a GPU (2026-11-27); the gradient-parity tests did
+    # not see it, as they compare the parameters' gradients. This drives cuda-tile's whole
+    # call around a stand-in for gsplat, on any machine.
+    from dyngs.renderers.base import Guards
+    from dyngs.renderers.cuda_tile import CudaTileRenderer
+
+    g, camera, background = random_scene(11, 9, 16, 12, torch.float32, sh_degree=0)
+    g.means.requires_grad_(True)
+    renderer = object.__new__(CudaTileRenderer)
+    renderer.config, renderer.guards = CudaTileConfig(packed=packed), Guards()
+    handed: list[torch.Tensor] = []
+
+    def rasterization(**kw: object):  # type: ignore[no-untyped-def]
+        rgbd, alpha, meta = _stand_in_rasterization(**kw)
+        meta["means2d"].retain_grad()
+        handed.append(meta["means2d"])
+        return rgbd, alpha, meta
+
+    renderer._rasterization = rasterization
+    out = renderer(g, camera, background)
+    assert out.means2d.grad is None and out.means2d_absgrad is not None
+    (out.rgb.sum() * 0.5).backward()
+    full = handed[0]
+    assert full.grad is not None and bool((full.grad != 0).any())
+    rows = torch.arange(9) if not packed else torch.arange(0, 9, 2)
+    want = torch.zeros(9, 2).index_copy(0, rows, full.grad.reshape(-1, 2))
+    want_abs = torch.zeros(9, 2).index_copy(0, rows, full.absgrad.reshape(-1, 2))  # type: ignore[attr-defined]
+    assert out.means2d.grad is not None
+    assert torch.equal(out.means2d.grad, want)
+    assert torch.equal(out.means2d_absgrad, want_abs)
+    assert torch.equal(
+        out.means2d.detach(), torch.zeros(9, 2).index_copy(0, rows, full.detach().reshape(-1, 2))
+    )
+    assert g.means.grad is not None and bool((g.means.grad != 0).any())
 
 
 def test_an_empty_scene_is_the_background_without_calling_gsplat() -> None:
