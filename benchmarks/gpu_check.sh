@@ -12,10 +12,12 @@
 # costs a minute rather than the whole lease (the first lent GPU lost every run that way).
 # Only if both smoke runs finish does it train the demo, lego-tiny and the six MuJoCo
 # scenes at full resolution side by side, each with its default recipe fitted into
-# TRAIN_MINUTES (default 4) by `--time-budget`. It leaves pytest logs, train logs and
-# summary.json (each run's metrics.json) in $OUT. Budget: ~1.5 min start, ~1 min
-# compile, ~1 min of smoke runs and tests, TRAIN_MINUTES + ~1.5 min of loading,
-# training and evaluation.
+# TRAIN_MINUTES (default 4) by `--time-budget`. It leaves machine.txt, steps.log,
+# tests.log, train-logs.txt and summary.json (each run's metrics.json) in $OUT, and
+# gpu-load.csv in `solo`: the device tool brings back 8 files at most. Budget: ~1.5 min
+# start, ~1.5 min to install and compile, ~1 min of smoke runs and tests, TRAIN_MINUTES +
+# ~1.5 min of loading, training and evaluation (measured 2026-11-27: 400 s in all for
+# TRAIN_MINUTES=4, plus ~30 s to start).
 set -u
 here=$(cd "$(dirname "$0")/.." && pwd)
 cd "$here"
@@ -57,8 +59,9 @@ export TORCH_HOME=$here/.gpu/shared/weights/torch-home
 { nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv
   python3 -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cuda)"
   nproc; git rev-parse --short HEAD 2>/dev/null; } > "$OUT/machine.txt" 2>&1
-timeout 300 python3 -c "from gsplat.cuda._backend import _C" > "$OUT/compile.log" 2>&1
+timeout 300 python3 -c "from gsplat.cuda._backend import _C" > /tmp/compile.log 2>&1
 log "gsplat compile rc=$?"
+tail -20 /tmp/compile.log >> "$OUT/machine.txt"
 
 train() {  # seconds, name, args...
     local seconds=$1 name=$2; shift 2
@@ -80,15 +83,18 @@ PY
     log end
 }
 
-# Two pytest runs, so that a crash in gsplat's kernels leaves the other's report.
+# Two pytest runs, so that a crash in gsplat's kernels leaves the other's report; their
+# logs and the anisotropy diagnostic end up in one file, as the tool returns 8 at most.
 ( timeout 150 python3 -m pytest -q -rs -p no:cacheprovider --tb=short -k cuda \
     tests/renderers/test_cuda_tile.py tests/datamanagers tests/fields tests/test_cli.py \
-    > "$OUT/pytest-parity.log" 2>&1
-  log "pytest parity rc=$? $(tail -1 "$OUT/pytest-parity.log")"
+    > /tmp/pytest-parity.log 2>&1
+  log "pytest parity rc=$? $(tail -1 /tmp/pytest-parity.log)"
   timeout 150 python3 -m pytest -q -rs -p no:cacheprovider --tb=short -k cuda \
-    tests/renderers/test_hard_cases.py > "$OUT/pytest-hard-cases.log" 2>&1
-  log "pytest hard cases rc=$? $(tail -1 "$OUT/pytest-hard-cases.log")"
-  python3 benchmarks/gpu_anisotropy.py > "$OUT/anisotropy.log" 2>&1 ) &
+    tests/renderers/test_hard_cases.py > /tmp/pytest-hard-cases.log 2>&1
+  log "pytest hard cases rc=$? $(tail -1 /tmp/pytest-hard-cases.log)"
+  python3 benchmarks/gpu_anisotropy.py > /tmp/anisotropy.log 2>&1
+  for f in /tmp/pytest-parity.log /tmp/pytest-hard-cases.log /tmp/anisotropy.log; do
+      echo "=== $f"; cat "$f"; done > "$OUT/tests.log" ) &
 tests=$!
 
 if [ "$mode" = solo ]; then
@@ -109,12 +115,23 @@ if [ "$mode" = solo ]; then
     exit 0
 fi
 
-smoke="--max-iters 60 --warmup-iters 20"
-train 150 smoke-demo --data demo $smoke & a=$!
-train 150 smoke-texture-800 --data ../shared/data/mujoco-texture --background 1 1 1 $smoke & b=$!
+# The demo's smoke run is long enough to densify (it grows by ~1 200 Gaussians on a CPU):
+# the first lent GPUs trained runs that never did (docs/NUMERICS.md "On a GPU").
+train 150 smoke-demo --data demo --max-iters 450 --warmup-iters 100 \
+    --densify.refine-start 150 & a=$!
+train 150 smoke-texture-800 --data ../shared/data/mujoco-texture --background 1 1 1 \
+    --max-iters 60 --warmup-iters 20 & b=$!
 wait $a; ra=$?; wait $b; rb=$?
-if [ $ra -ne 0 ] || [ $rb -ne 0 ]; then
-    log "a smoke run failed: no long runs"
+grew=$(python3 - <<'PY'
+import re
+counts = [int(m.group(1).replace(",", "")) for line in open("/tmp/runs/smoke-demo.log")
+          if (m := re.match(r"step \d+/\d+ .*gaussians ([\d,]+)", line))]
+print(len(counts) > 1 and counts[-1] > counts[0], counts[:1] + counts[-1:])
+PY
+)
+log "smoke demo densified: $grew"
+if [ $ra -ne 0 ] || [ $rb -ne 0 ] || [ "${grew%% *}" != True ]; then
+    log "a smoke run failed or did not densify: no long runs"
     for f in /tmp/runs/smoke-*.log; do echo "=== $f"; tail -40 "$f"; done > "$OUT/train-logs.txt"
     wait
     exit 1
