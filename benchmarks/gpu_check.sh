@@ -132,8 +132,8 @@ PY
 log "smoke demo densified: $grew"
 if [ $ra -ne 0 ] || [ $rb -ne 0 ] || [ "${grew%% *}" != True ]; then
     log "a smoke run failed or did not densify: no long runs"
-    for f in /tmp/runs/smoke-*.log; do echo "=== $f"; tail -40 "$f"; done > "$OUT/train-logs.txt"
     wait
+    report
     exit 1
 fi
 

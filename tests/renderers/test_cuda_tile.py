@@ -151,7 +151,6 @@ class _StandInSplat(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d: torch.Tensor, weights: torch.Tensor, shape: tuple[int, ...]):  # type: ignore[no-untyped-def, override]
         ctx.save_for_backward(means2d, weights)
-        ctx.shape = shape
         return ((means2d * weights).sum() * torch.ones(shape, dtype=means2d.dtype)).clone()
 
     @staticmethod
