@@ -131,7 +131,10 @@ def main(argv: Sequence[str] | None = None) -> None:
         finally:
             if viewer is not None:
                 viewer.close()
-        group.close()
+            # Failed runs too: a process that exits with its group still up can be killed
+            # by SIGABRT as the interpreter tears down gloo's threads ("terminate called
+            # without an active exception"), turning exit code 2 into -6 at random.
+            group.close()
 
     run_tool(body)
 

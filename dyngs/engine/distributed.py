@@ -191,7 +191,9 @@ class ProcessGroup:
             raise _lost(error, self.rank) from error
 
     def close(self) -> None:
-        """Leave the group (after a run that ended well; a failed one just exits)."""
+        """Leave the group, after a run that ended well or failed alike (`dyngs.cli`). With
+        a peer killed it returns at once on gloo (tests/engine/test_distributed.py kills
+        one); leaving it up at exit let gloo's threads abort the process now and then."""
         if self.distributed and dist.is_initialized():
             dist.destroy_process_group()
 
