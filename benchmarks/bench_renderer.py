@@ -51,7 +51,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from dyngs.tools.common import machine_info  # noqa: E402
+from dyngs.tools.common import keep_freed_memory, machine_info  # noqa: E402
 from dyngs.types import Camera, Gaussians  # noqa: E402
 
 SYNTHETIC = [  # (name, Gaussians, size, backward)
@@ -252,8 +252,9 @@ def child(kind: str, name: str, python: str, scene: Path, out: Path, args: argpa
                NUMBA_NUM_THREADS=str(args.threads))  # fmt: skip
     extra = ["--backward"] if backward else []
     if kind == "dyngs":
+        malloc = ["--default-malloc"] if args.default_malloc else []
         command = [sys.executable, __file__, "--child", name, str(scene), str(out),
-                   "--repeats", str(args.repeats), *extra]  # fmt: skip
+                   "--repeats", str(args.repeats), *extra, *malloc]  # fmt: skip
     else:
         adapter = ROOT / "benchmarks" / "peers" / f"{name}_adapter.py"
         command = [
@@ -290,11 +291,18 @@ def main() -> None:
     parser.add_argument(
         "--output", type=Path, default=ROOT / "benchmarks/results/renderer-cpu-tile.json"
     )
+    parser.add_argument(
+        "--default-malloc", action="store_true",
+        help="render with glibc's default settings, not those every dyngs tool sets "
+        "(`keep_freed_memory`), to measure what they change",
+    )  # fmt: skip
     parser.add_argument("--child", nargs=3, help=argparse.SUPPRESS)
     parser.add_argument("--backward", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
         torch.set_num_threads(int(os.environ.get("THREADS", "2")))
+        if not args.default_malloc:
+            keep_freed_memory()  # as in every dyngs tool, for both renderers
         run_dyngs(
             args.child[0], Path(args.child[1]), Path(args.child[2]), args.repeats, args.backward
         )

@@ -34,7 +34,7 @@ sys.path.insert(0, str(ROOT))
 from dyngs.cli import parse  # noqa: E402
 from dyngs.engine.trainer import Trainer  # noqa: E402
 from dyngs.engine.writer import NullWriter  # noqa: E402
-from dyngs.tools.common import machine_info, source_commit  # noqa: E402
+from dyngs.tools.common import keep_freed_memory, machine_info, source_commit  # noqa: E402
 
 
 def main() -> None:
@@ -51,6 +51,7 @@ def main() -> None:
     args = parser.parse_args()
     command = args.train[1:] if args.train[:1] == ["--"] else args.train
     torch.set_num_threads(args.threads)
+    keep_freed_memory()  # as dyngs-train does
     config, _ = parse(command)
     with tempfile.TemporaryDirectory() as folder:
         trainer = Trainer(config, Path(folder), NullWriter(), Console(quiet=True))

@@ -1,8 +1,11 @@
-"""What every dyngs-* tool shares: the one-line error wrapper, and the machine and commit
-a benchmark ran on. Run folders are loaded by `dyngs.runs.load_run`."""
+"""What every dyngs-* tool shares: the one-line error wrapper, the process's memory
+settings, and the machine and commit a benchmark ran on. Run folders are loaded by
+`dyngs.runs.load_run`."""
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import platform
 import subprocess
 import sys
@@ -52,8 +55,45 @@ def one_line_warnings(console: Console) -> Iterator[None]:
         warnings.showwarning = previous
 
 
+# glibc's mallopt parameters (malloc.h).
+_M_TRIM_THRESHOLD = -1
+_M_MMAP_THRESHOLD = -3
+KEEP_FREED_BYTES = 256 * 2**20
+"""Freed memory a dyngs process keeps mapped for its next allocations (`keep_freed_memory`)."""
+MMAP_THRESHOLD_BYTES = 32 * 2**20
+"""Allocations at least this large get pages of their own, returned to the system when
+freed (glibc's own ceiling for its adaptive threshold on 64-bit machines)."""
+
+
+def keep_freed_memory() -> bool:
+    """Let this process reuse the memory it frees rather than hand it back to the system
+    at once; True where the C library took the settings (glibc), False elsewhere.
+
+    A training step or a render allocates and frees the same few megabytes of tensors and
+    arrays again and again. By default glibc returns a freed block of more than 128 KiB
+    (or a heap whose free top exceeds twice that) to the system, so the next step takes
+    the same memory back one page fault at a time: 427 faults a frame for cpu-tile on the
+    demo, 6 865 for cpu-reference, and a fault costs microseconds in a virtual machine
+    (docs/RENDERER.md). Raising the two thresholds keeps up to `KEEP_FREED_BYTES` of freed
+    memory mapped for reuse; the peak a process reaches is unchanged, it only stays
+    mapped. PyTorch's own performance guide asks for the same with a different allocator
+    (jemalloc or tcmalloc), which dyngs cannot install for its users."""
+    name = ctypes.util.find_library("c")
+    try:
+        mallopt = ctypes.CDLL(name).mallopt if name else None
+    except (OSError, AttributeError):
+        mallopt = None
+    if mallopt is None:
+        return False
+    mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
+    kept = mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES)
+    return bool(kept and mallopt(_M_TRIM_THRESHOLD, KEEP_FREED_BYTES))
+
+
 def run_tool(body: Callable[[Console], object]) -> None:
-    """Run a tool's body; a `UserError` becomes one red line and exit code 2, Ctrl-C 130."""
+    """Run a tool's body; a `UserError` becomes one red line and exit code 2, Ctrl-C 130.
+    Freed memory is kept for reuse (`keep_freed_memory`)."""
+    keep_freed_memory()
     console = Console()
     with one_line_warnings(console):
         try:
