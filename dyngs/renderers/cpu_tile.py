@@ -39,7 +39,6 @@ from dyngs.renderers.stages import (
     GEOMETRY_DTYPE,
     ScreenGaussians,
     TileBins,
-    depth_order,
     finish_image,
     off_axis_limits,
 )
@@ -340,15 +339,17 @@ class _Project(torch.autograd.Function):
 def bin_tiles_compiled(
     screen: ScreenGaussians, width: int, height: int, tile_size: int
 ) -> TileBins:
-    """`stages.bin_tiles` with the pairs dealt to tiles by a compiled counting sort (O(M),
-    where the reference expands and sorts them in PyTorch): the same bins, element for
-    element (tests/renderers/test_cpu_tile.py)."""
+    """`stages.bin_tiles` in one compiled pass (`tile_kernels.bin_by_depth`): the depth
+    order by a stable radix sort, each Gaussian's pixel box, and a counting sort of the
+    pairs into tiles (O(M), where the reference expands and sorts them in PyTorch). The
+    same bins, element for element (tests/renderers/test_cpu_tile.py)."""
     from dyngs.renderers import tile_kernels
 
-    order, lo, hi = depth_order(screen, width, height)
-    tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
-    gaussian, start, count = tile_kernels.bin_pairs(
-        order.numpy(), lo.numpy(), hi.numpy(), tile_size, tiles_x, tiles_x * tiles_y
+    layout = (-(-width // tile_size), tile_size, width, height)
+    geometry = (t.to(GEOMETRY_DTYPE) for t in (screen.depths, screen.means2d, screen.extents))
+    depths, means2d, extents = (_numpy(t) for t in geometry)
+    gaussian, start, count = tile_kernels.bin_by_depth(
+        depths, _numpy(screen.visible), means2d, extents, layout
     )
     return TileBins(
         gaussian=torch.from_numpy(gaussian),

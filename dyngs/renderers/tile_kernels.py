@@ -522,6 +522,79 @@ def sum_pairs(
             per_gaussian[g, j] += per_pair[m, j]
 
 
+RADIX_BITS = 11
+"""Bits of the key each pass of `stable_argsort` sorts by (2 048 buckets: six passes cover
+a float64, and passes on which every key has the same digit are skipped)."""
+
+
+@njit(cache=True, nogil=True)
+def stable_argsort(values: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
+    """The permutation that sorts float64 `values` ascending, equal values in index order:
+    `torch.argsort(values, stable=True)` for values without NaN (−0.0 sorts before +0.0,
+    where PyTorch takes them as equal). A least-significant-digit radix sort on the
+    values' bits, flipped so that their unsigned order is the numeric one (all bits of a
+    negative value, the sign bit of a positive one): O(n) per pass, and stable because
+    each pass keeps the order of the one before it."""
+    n = values.shape[0]
+    bits = values.view(np.uint64)
+    sign = np.uint64(1) << np.uint64(63)
+    keys = np.empty(n, dtype=np.uint64)
+    for i in range(n):
+        b = bits[i]
+        keys[i] = ~b if b & sign else b | sign
+    order = np.arange(n)
+    spare_keys, spare_order = np.empty_like(keys), np.empty_like(order)
+    buckets = 1 << RADIX_BITS
+    mask = np.uint64(buckets - 1)
+    count = np.empty(buckets, dtype=np.int64)
+    for shift in range(0, 64, RADIX_BITS):
+        count[:] = 0
+        for i in range(n):
+            count[(keys[i] >> np.uint64(shift)) & mask] += 1
+        if n == 0 or count[(keys[0] >> np.uint64(shift)) & mask] == n:
+            continue  # one digit for all: this pass would move nothing
+        total = 0
+        for d in range(buckets):
+            total, count[d] = total + count[d], total
+        for i in range(n):
+            d = (keys[i] >> np.uint64(shift)) & mask
+            spare_keys[count[d]] = keys[i]
+            spare_order[count[d]] = order[i]
+            count[d] += 1
+        keys, spare_keys = spare_keys, keys
+        order, spare_order = spare_order, order
+    return order
+
+
+@njit(cache=True, nogil=True)
+def bin_by_depth(
+    depths: np.ndarray,
+    visible: np.ndarray,
+    means2d: np.ndarray,
+    extents: np.ndarray,
+    layout: tuple,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    """`stages.bin_tiles` whole: the visible Gaussians in depth order (`stable_argsort`,
+    as `stages.depth_order`), each one's pixel box (`stages.pixel_range`, the same float64
+    operations) and the counting sort of `bin_pairs`. layout = (tiles_x, tile_size,
+    width, height)."""
+    tiles_x, tile_size, width, height = layout
+    tiles = tiles_x * -(-height // tile_size)
+    shown = np.flatnonzero(visible)
+    order = shown[stable_argsort(depths[shown])]
+    lo = np.empty((order.shape[0], 2), dtype=np.int64)
+    hi = np.empty((order.shape[0], 2), dtype=np.int64)
+    for v in range(order.shape[0]):
+        g = order[v]
+        for axis, size in ((0, width), (1, height)):
+            m, e = means2d[g, axis], extents[g, axis]
+            first = math.ceil(min(max(m - e - 0.5, -1.0), float(size)))
+            last = math.floor(min(max(m + e - 0.5, -1.0), float(size)))
+            lo[v, axis] = max(int(first), 0)
+            hi[v, axis] = min(int(last), size - 1)
+    return bin_pairs(order, lo, hi, tile_size, tiles_x, tiles)
+
+
 @njit(cache=True, nogil=True)
 def bin_pairs(
     order: np.ndarray, lo: np.ndarray, hi: np.ndarray, tile_size: int, tiles_x: int, tiles: int

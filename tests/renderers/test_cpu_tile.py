@@ -5,6 +5,7 @@ hard cases run on it too (test_hard_cases.py)."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 from typing import Any
 
@@ -367,3 +368,35 @@ def test_the_vectorised_exponential_is_the_correctly_rounded_one() -> None:
     # Above 0 it is clamped (α is then clamped to alpha_max anyway); far below, it is 0.
     assert each(np.array([0.5, 80.0], dtype=np.float32)).tolist() == [1.0, 1.0]
     assert each(np.array([-200.0, -1e30], dtype=np.float32))[0] < 1e-44
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_compiled_stable_argsort_is_torchs(seed: int) -> None:
+    # Ties (a few distinct values), both signs, subnormals, infinities and a wide range of
+    # magnitudes, so that every radix pass and the sign flip matter.
+    gen = torch.Generator().manual_seed(seed)
+    n = 3000
+    pool = torch.tensor([0.0, 1.0, -1.0, 5e-324, -5e-324, 1e300, -1e300, math.inf, -math.inf])
+    values = torch.randn(n, generator=gen, dtype=torch.float64) * 10.0 ** torch.randint(
+        -30, 30, (n,), generator=gen
+    )
+    tied = torch.rand(n, generator=gen) < 0.5
+    picks = pool[torch.randint(len(pool), (n,), generator=gen)]
+    values = torch.where(tied, picks, values)
+    values[values == 0] = 0.0  # no −0.0: PyTorch takes it as equal to +0.0
+    from dyngs.renderers import tile_kernels
+
+    got = tile_kernels.stable_argsort(values.numpy())
+    assert torch.equal(torch.from_numpy(got), torch.argsort(values, stable=True))
+    assert len(tile_kernels.stable_argsort(values[:0].numpy())) == 0
+
+
+def test_compiled_binning_keeps_index_order_among_equal_depths() -> None:
+    gaussians, camera, _ = random_scene(5, 400, 40, 30, torch.float64, 1)
+    screen = project(gaussians, camera, Guards())
+    screen = replace(screen, depths=screen.depths.round(decimals=0))  # a handful of depths
+    assert len(screen.depths[screen.visible].unique()) < 10
+    want = bin_tiles(screen, 40, 30, 8)
+    got = cpu_tile.bin_tiles_compiled(screen, 40, 30, 8)
+    for name in ("gaussian", "tile_start", "tile_count"):
+        assert torch.equal(getattr(got, name), getattr(want, name)), name
