@@ -26,6 +26,12 @@ OUT_COLUMNS = 9
 """Columns of the forward's float64 output: 2D mean (2), conic (3), opacity, depth,
 extent (2)."""
 
+CHUNK = 256
+"""Gaussians per call of the per-range functions the parallel loops run: a call passes the
+scene's arrays, and numba counts references on each of them, which cost about as much as
+projecting a Gaussian when the calls were one a Gaussian. Within a range the per-Gaussian
+code is inlined. (The ranges are independent, so any split gives the same results.)"""
+
 GRAD_COLUMNS = 11
 """Columns of the backward's output: ∂/∂mean (3), quaternion (4), scale (3), opacity."""
 
@@ -137,11 +143,29 @@ def project_forward(
     off-axis limits, width, height, the right and bottom off-axis limits (`off_axis_limits`),
     and limits near, far, eps2d, alpha_min, the quaternion eps and
     the extent margins (relative, absolute)."""
-    for i in prange(scene[0].shape[0]):
-        _forward_one(i, scene, view, antialiased, out, valid, visible)
+    n = scene[0].shape[0]
+    for chunk in prange(-(-n // CHUNK)):
+        _forward_range(chunk * CHUNK, min(n, (chunk + 1) * CHUNK), scene, view, antialiased,
+                       out, valid, visible)  # fmt: skip
 
 
 @njit(cache=True, nogil=True)
+def _forward_range(
+    first: int,
+    end: int,
+    scene: tuple,
+    view: tuple,
+    antialiased: bool,
+    out: np.ndarray,
+    valid: np.ndarray,
+    visible: np.ndarray,
+) -> None:  # pragma: no cover - compiled
+    """Gaussians [first, end) of `project_forward`."""
+    for i in range(first, end):
+        _forward_one(i, scene, view, antialiased, out, valid, visible)
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _forward_one(
     i: int,
     scene: tuple,
@@ -151,8 +175,7 @@ def _forward_one(
     valid: np.ndarray,
     visible: np.ndarray,
 ) -> None:  # pragma: no cover - compiled
-    """Gaussian i of `project_forward` (a function of its own, so that numba's parallel
-    loop analysis does not look into the tuples)."""
+    """Gaussian i of `project_forward`."""
     means, quats, scales, opacities, finite = scene
     rot, trans, intrinsics, limits = view
     fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
@@ -213,11 +236,29 @@ def project_backward(
     """`upstream` [N, 7]: ∂L/∂(2D mean, conic, opacity, depth) → `grads` [N, GRAD_COLUMNS]:
     ∂L/∂(mean, quaternion, scale, opacity). Non-finite rows get zeros, as the zeroed
     parameters of `stages.prepare` give them."""
-    for i in prange(scene[0].shape[0]):
-        _backward_one(i, scene, view, valid, antialiased, upstream, grads)
+    n = scene[0].shape[0]
+    for chunk in prange(-(-n // CHUNK)):
+        _backward_range(chunk * CHUNK, min(n, (chunk + 1) * CHUNK), scene, view, valid,
+                        antialiased, upstream, grads)  # fmt: skip
 
 
 @njit(cache=True, nogil=True)
+def _backward_range(
+    first: int,
+    end: int,
+    scene: tuple,
+    view: tuple,
+    valid: np.ndarray,
+    antialiased: bool,
+    upstream: np.ndarray,
+    grads: np.ndarray,
+) -> None:  # pragma: no cover - compiled
+    """Gaussians [first, end) of `project_backward`."""
+    for i in range(first, end):
+        _backward_one(i, scene, view, valid, antialiased, upstream, grads)
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _backward_one(
     i: int,
     scene: tuple,
