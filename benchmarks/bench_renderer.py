@@ -17,8 +17,10 @@ render is projection, binning and the PyTorch glue around them.
 Every (case, renderer) runs in a fresh process (its peak memory is its own: "peak MB"
 is what the process's peak RSS rose by from before the warm-up, one-off costs such as
 loading compiled kernels included; "steady" what it rose by over the timed renders alone,
-on Linux, where the peak can be reset after the warm-up) `--repeats` times after one
-warm-up; `--rounds` rounds cycle through all of them in turn, so that a
+on Linux, where the peak can be reset after the warm-up) `--repeats` times after
+`--warmup` renders (a training run renders thousands of times in one process, and cpu-tile
+takes about ten renders to settle: its first few after compiling are up to 1.6× slower);
+`--rounds` rounds cycle through all of them in turn, so that a
 busy spell of the machine hits every renderer alike, and the medians over all rounds are
 reported. Every renderer gets `--threads` threads. Each image is compared with
 cpu-reference's (peers: the largest difference, as their rules differ in detail).
@@ -134,7 +136,9 @@ def demo_frames(run: Path, folder: Path, limit: int) -> list[Path]:
     return paths
 
 
-def run_dyngs(renderer: str, scene: Path, out: Path, repeats: int, backward: bool) -> None:
+def run_dyngs(
+    renderer: str, scene: Path, out: Path, repeats: int, backward: bool, warmup: int = 1
+) -> None:
     """Child process: render `scene` with a dyngs renderer; the adapters' output format."""
     from dyngs.renderers import RENDERERS
 
@@ -145,7 +149,7 @@ def run_dyngs(renderer: str, scene: Path, out: Path, repeats: int, backward: boo
     forward_s, total_s, pairs = [], [], None
     baseline = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     steady_base: int | None = None
-    for repeat in range(repeats + 1):
+    for repeat in range(-warmup + 1, repeats + 1):
         leaves = {n: t.clone().requires_grad_(backward) for n, t in base.items()}
         started = time.perf_counter()
         out_ = draw(Gaussians(**leaves), camera, torch.zeros(3))
@@ -157,7 +161,7 @@ def run_dyngs(renderer: str, scene: Path, out: Path, repeats: int, backward: boo
             total_s.append(time.perf_counter() - started)
         elif composite_s is not None:
             composite_s.clear()  # the warm-up's
-        if repeat == 0 and repeats > 0:
+        if repeat == 0 and repeats > 0:  # the last warm-up
             del out_
             steady_base = _reset_peak_rss()
     work = getattr(draw, "last_work", None)
@@ -254,7 +258,8 @@ def child(kind: str, name: str, python: str, scene: Path, out: Path, args: argpa
     if kind == "dyngs":
         malloc = ["--default-malloc"] if args.default_malloc else []
         command = [sys.executable, __file__, "--child", name, str(scene), str(out),
-                   "--repeats", str(args.repeats), *extra, *malloc]  # fmt: skip
+                   "--repeats", str(args.repeats), "--warmup", str(args.warmup), *extra,
+                   *malloc]  # fmt: skip
     else:
         adapter = ROOT / "benchmarks" / "peers" / f"{name}_adapter.py"
         command = [
@@ -279,7 +284,8 @@ def main() -> None:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--warmup", type=int, default=10, help="renders before the timed ones")
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--sigma-px", type=float, default=1.5)
     parser.add_argument("--demo-run", type=Path, default=None)
@@ -304,7 +310,12 @@ def main() -> None:
         if not args.default_malloc:
             keep_freed_memory()  # as in every dyngs tool, for both renderers
         run_dyngs(
-            args.child[0], Path(args.child[1]), Path(args.child[2]), args.repeats, args.backward
+            args.child[0],
+            Path(args.child[1]),
+            Path(args.child[2]),
+            args.repeats,
+            args.backward,
+            args.warmup,
         )
         return
     report(args)
