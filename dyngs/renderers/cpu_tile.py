@@ -19,6 +19,7 @@ Letters: N Gaussians, M tile–Gaussian pairs, H×W image.
 from __future__ import annotations
 
 import importlib.util
+import math
 import sys
 import threading
 import time
@@ -31,7 +32,6 @@ from jaxtyping import Float
 from torch import Tensor
 
 from dyngs.errors import ConfigError, RendererUnavailable
-from dyngs.ops import finite_rows
 from dyngs.renderers.base import Guards, RenderOutput
 from dyngs.renderers.stages import (
     _EXTENT_ABSOLUTE_MARGIN,
@@ -131,7 +131,7 @@ class CpuTileRenderer:
             alpha=alpha,
             depth=depth,
             means2d=screen.means2d,
-            radii=torch.where(screen.visible[:, None], screen.extents.ceil(), 0).int(),
+            radii=screen.extents.ceil().int(),  # extents are 0 where not visible
             visible=screen.visible,
             num_nonfinite=screen.num_nonfinite,
             contribution=weights,
@@ -230,13 +230,19 @@ def project_compiled(
 ) -> ScreenGaussians:
     """`stages.project` with the geometry compiled (`project_kernels`); the colours are
     `eval_sh` from the same float64 camera-relative means, as there."""
+    from dyngs.renderers import project_kernels as pk
+
     g = gaussians
     used = g.colors if g.sh_degree is None else g.colors[:, : (g.sh_degree + 1) ** 2]
-    finite = finite_rows(g.means, g.quats, g.scales, g.opacities, used)
+    params = (g.means, g.quats, g.scales, g.opacities, used)
+    rows = tuple(_numpy(t).reshape(len(t), math.prod(t.shape[1:])) for t in params)  # N = 0 too
+    finite = torch.empty(len(g.means), dtype=torch.bool)
+    dtypes = "/".join(str(t.dtype)[6:] for t in params)  # compiled once for each combination
+    _run(pk.finite_rows, 1, dtypes, rows, finite.numpy())
     w2c = camera.world_to_camera.to(dtype=GEOMETRY_DTYPE)
     view = _View(camera, guards, antialiased, finite.numpy(), w2c, _thread_count(threads))
-    params = (t.to(GEOMETRY_DTYPE) for t in (g.means, g.quats, g.scales, g.opacities))
-    means2d, conics, opacities, depths, extents, visible = _Project.apply(*params, view)
+    geometry = (t.to(GEOMETRY_DTYPE) for t in params[:4])
+    means2d, conics, opacities, depths, extents, visible = _Project.apply(*geometry, view)
     colors = torch.where(finite.view(-1, *[1] * (used.ndim - 1)), used, 0)
     if g.sh_degree is None:
         rgb = colors
@@ -303,18 +309,17 @@ class _Project(torch.autograd.Function):
 
         n = len(means)
         inputs = tuple(_numpy(t) for t in (means, quats, scales, opacities))
-        out = np.empty((n, pk.OUT_COLUMNS))
+        out = tuple(np.empty((n, k) if k > 1 else n) for k in pk.OUT_COLUMNS)
         valid, visible = np.empty(n, dtype=np.bool_), np.empty(n, dtype=np.bool_)
         scene = (*inputs, view.finite)
         _run(pk.project_forward, view.threads, "float64", scene, view.arrays(), view.antialiased,
              out, valid, visible)  # fmt: skip
         view.valid = valid
         ctx.view, ctx.inputs = view, inputs
-        result = torch.from_numpy(out)
-        extents, shown = result[:, 7:9].clone(), torch.from_numpy(visible)
+        means2d, conics, opacity, depth, extents = (torch.from_numpy(a) for a in out)
+        shown = torch.from_numpy(visible)
         ctx.mark_non_differentiable(extents, shown)
-        return (result[:, 0:2].clone(), result[:, 2:5].clone(), result[:, 5].clone(),
-                result[:, 6].clone(), extents, shown)  # fmt: skip
+        return means2d, conics, opacity, depth, extents, shown
 
     @staticmethod
     def backward(  # type: ignore[override]

@@ -20,11 +20,11 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import literal_unroll, njit, prange
 
-OUT_COLUMNS = 9
-"""Columns of the forward's float64 output: 2D mean (2), conic (3), opacity, depth,
-extent (2)."""
+OUT_COLUMNS = (2, 3, 1, 1, 2)
+"""Columns of the forward's float64 outputs, one array each (so that each can be handed
+to PyTorch as it is): 2D mean, conic, opacity, depth, extent."""
 
 CHUNK = 256
 """Gaussians per call of the per-range functions the parallel loops run: a call passes the
@@ -137,7 +137,8 @@ def project_forward(
     valid: np.ndarray,
     visible: np.ndarray,
 ) -> None:  # pragma: no cover - compiled
-    """Fill `out` [N, OUT_COLUMNS], `valid` and `visible` (see the module docstring).
+    """Fill the arrays of `out` (2D means [N, 2], conics [N, 3], opacities [N],
+    depths [N], extents [N, 2]), `valid` and `visible` (see the module docstring).
     scene: (means, quaternions, scales, opacities, finite rows); view: (camera rotation,
     translation, intrinsics, limits), with intrinsics fx, fy, cx, cy, the left and top
     off-axis limits, width, height, the right and bottom off-axis limits (`off_axis_limits`),
@@ -205,10 +206,11 @@ def _forward_one(
         and math.isfinite(det) and math.isfinite(u) and math.isfinite(v)
     )  # fmt: skip
     d = det if good else 1.0
-    out[i, 0], out[i, 1] = u, v
-    out[i, 2], out[i, 3], out[i, 4] = c_d / d, -b / d, a_d / d
-    out[i, 5] = o if good else 0.0
-    out[i, 6] = z
+    means2d, conics, opacity, depth, extent = out
+    means2d[i, 0], means2d[i, 1] = u, v
+    conics[i, 0], conics[i, 1], conics[i, 2] = c_d / d, -b / d, a_d / d
+    opacity[i] = o if good else 0.0
+    depth[i] = z
     level = max(2 * math.log(o / alpha_min if good else 1.0), 0.0)
     ex = math.sqrt(level * max(a_d, 0.0)) * (1 + limits[5]) + limits[6]
     ey = math.sqrt(level * max(c_d, 0.0)) * (1 + limits[5]) + limits[6]
@@ -218,8 +220,8 @@ def _forward_one(
     lo_y = max(math.ceil(min(max(v - ey - 0.5, -1.0), height)), 0.0)
     hi_y = min(math.floor(min(max(v + ey - 0.5, -1.0), height)), height - 1)
     shown = good and lo_x <= hi_x and lo_y <= hi_y
-    out[i, 7] = ex if shown else 0.0
-    out[i, 8] = ey if shown else 0.0
+    extent[i, 0] = ex if shown else 0.0
+    extent[i, 1] = ey if shown else 0.0
     valid[i] = good
     visible[i] = shown
 
@@ -432,3 +434,15 @@ def _rotation_backward(
     scale = 1.0 / (n * big)
     grads[i, 3], grads[i, 4] = gw * scale, gx * scale
     grads[i, 5], grads[i, 6] = gy * scale, gz * scale
+
+
+@njit(cache=True, nogil=True)
+def finite_rows(arrays: tuple, finite: np.ndarray) -> None:  # pragma: no cover - compiled
+    """finite[i] = whether every entry of row i of every [N, k] array in `arrays` is
+    finite (`dyngs.ops.finite_rows`, in one pass over the rows and no temporaries)."""
+    finite[:] = True
+    for values in literal_unroll(arrays):
+        for i in range(values.shape[0]):
+            for j in range(values.shape[1]):
+                if not np.isfinite(values[i, j]):
+                    finite[i] = False

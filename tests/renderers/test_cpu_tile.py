@@ -400,3 +400,28 @@ def test_compiled_binning_keeps_index_order_among_equal_depths() -> None:
     got = cpu_tile.bin_tiles_compiled(screen, 40, 30, 8)
     for name in ("gaussian", "tile_start", "tile_count"):
         assert torch.equal(getattr(got, name), getattr(want, name)), name
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_compiled_finiteness_check_is_ops_finite_rows(dtype: torch.dtype) -> None:
+    from dyngs.ops import finite_rows
+    from dyngs.renderers import project_kernels
+
+    gen = torch.Generator().manual_seed(3)
+    n = 500
+    tensors = [torch.randn(n, *shape, generator=gen, dtype=dtype)
+               for shape in ((3,), (4,), (3,), (), (16, 3))]  # fmt: skip
+    for t in tensors:  # a few NaN and ±Inf entries, anywhere in a row
+        flat = t.view(n, -1)
+        rows = torch.randint(n, (8,), generator=gen)
+        cols = torch.randint(flat.shape[1], (8,), generator=gen)
+        flat[rows[:3], cols[:3]] = math.nan
+        flat[rows[3:6], cols[3:6]] = math.inf
+        flat[rows[6:], cols[6:]] = -math.inf
+    want = finite_rows(*tensors)
+    assert 0 < int(want.sum()) < n
+    got = np.empty(n, dtype=np.bool_)
+    project_kernels.finite_rows(tuple(t.reshape(n, -1).numpy() for t in tensors), got)
+    assert torch.equal(torch.from_numpy(got), want)
+    none = np.empty(0, dtype=np.bool_)
+    project_kernels.finite_rows(tuple(t[:0].reshape(0, 1).numpy() for t in tensors), none)
