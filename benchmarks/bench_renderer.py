@@ -53,7 +53,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from dyngs.tools.common import keep_freed_memory, machine_info  # noqa: E402
+from dyngs.tools.common import keep_freed_memory, machine_info, source_commit  # noqa: E402
 from dyngs.types import Camera, Gaussians  # noqa: E402
 
 SYNTHETIC = [  # (name, Gaussians, size, backward)
@@ -349,7 +349,11 @@ def report(args: argparse.Namespace) -> None:
     rows = summarise(cases, renderers, runs, rates)
     print_table(rows, rates)
     args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(json.dumps({"machine": machine_info(), "threads": args.threads,
+    memory = "glibc defaults" if args.default_malloc else "keep_freed_memory"
+    settings = {"repeats": args.repeats, "warmup": args.warmup, "rounds": args.rounds,
+                "memory": memory}  # fmt: skip
+    args.output.write_text(json.dumps({"machine": machine_info(), "commit": source_commit(ROOT),
+                                       "threads": args.threads, "settings": settings,
                                        "rates": rates, "rows": rows}, indent=1) + "\n")  # fmt: skip
     print(f"wrote {args.output}")
 
