@@ -57,7 +57,12 @@ def test_kept_memory_is_reused_without_page_faults() -> None:
 
 
 def test_every_tool_keeps_freed_memory(monkeypatch: pytest.MonkeyPatch) -> None:
-    calls = []
-    monkeypatch.setattr(common, "keep_freed_memory", lambda: calls.append(1) or True)
+    calls: list[int] = []
+
+    def counted() -> bool:
+        calls.append(1)
+        return True
+
+    monkeypatch.setattr(common, "keep_freed_memory", counted)
     common.run_tool(lambda console: None)
     assert calls == [1]
