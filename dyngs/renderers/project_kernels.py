@@ -128,6 +128,12 @@ def _project_2d(t: tuple, sig: tuple) -> tuple[float, float, float]:  # pragma: 
     return cov_a, cov_b, cov_c
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _span(chunk: int, scene: tuple) -> tuple[int, int]:  # pragma: no cover - compiled
+    """The Gaussians [first, end) of a chunk of `CHUNK`."""
+    return chunk * CHUNK, min(scene[0].shape[0], (chunk + 1) * CHUNK)
+
+
 @njit(parallel=True, cache=True, nogil=True)
 def project_forward(
     scene: tuple,
@@ -144,39 +150,25 @@ def project_forward(
     off-axis limits, width, height, the right and bottom off-axis limits (`off_axis_limits`),
     and limits near, far, eps2d, alpha_min, the quaternion eps and
     the extent margins (relative, absolute)."""
-    n = scene[0].shape[0]
-    for chunk in prange(-(-n // CHUNK)):
-        _forward_range(chunk * CHUNK, min(n, (chunk + 1) * CHUNK), scene, view, antialiased,
-                       out, valid, visible)  # fmt: skip
+    for chunk in prange(-(-scene[0].shape[0] // CHUNK)):
+        _forward_range(_span(chunk, scene), scene, view, antialiased, (out, valid, visible))
 
 
 @njit(cache=True, nogil=True)
 def _forward_range(
-    first: int,
-    end: int,
-    scene: tuple,
-    view: tuple,
-    antialiased: bool,
-    out: np.ndarray,
-    valid: np.ndarray,
-    visible: np.ndarray,
+    span: tuple, scene: tuple, view: tuple, antialiased: bool, outputs: tuple
 ) -> None:  # pragma: no cover - compiled
-    """Gaussians [first, end) of `project_forward`."""
-    for i in range(first, end):
-        _forward_one(i, scene, view, antialiased, out, valid, visible)
+    """Gaussians [span[0], span[1]) of `project_forward`."""
+    for i in range(span[0], span[1]):
+        _forward_one(i, scene, view, antialiased, outputs)
 
 
 @njit(cache=True, nogil=True, inline="always")
 def _forward_one(
-    i: int,
-    scene: tuple,
-    view: tuple,
-    antialiased: bool,
-    out: np.ndarray,
-    valid: np.ndarray,
-    visible: np.ndarray,
+    i: int, scene: tuple, view: tuple, antialiased: bool, outputs: tuple
 ) -> None:  # pragma: no cover - compiled
-    """Gaussian i of `project_forward`."""
+    """Gaussian i of `project_forward`; outputs: (out, valid, visible)."""
+    out, valid, visible = outputs
     means, quats, scales, opacities, finite = scene
     rot, trans, intrinsics, limits = view
     fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
@@ -238,40 +230,25 @@ def project_backward(
     """`upstream` [N, 7]: ∂L/∂(2D mean, conic, opacity, depth) → `grads` [N, GRAD_COLUMNS]:
     ∂L/∂(mean, quaternion, scale, opacity). Non-finite rows get zeros, as the zeroed
     parameters of `stages.prepare` give them."""
-    n = scene[0].shape[0]
-    for chunk in prange(-(-n // CHUNK)):
-        _backward_range(chunk * CHUNK, min(n, (chunk + 1) * CHUNK), scene, view, valid,
-                        antialiased, upstream, grads)  # fmt: skip
+    for chunk in prange(-(-scene[0].shape[0] // CHUNK)):
+        _backward_range(_span(chunk, scene), scene, view, (valid, antialiased, upstream, grads))
 
 
 @njit(cache=True, nogil=True)
 def _backward_range(
-    first: int,
-    end: int,
-    scene: tuple,
-    view: tuple,
-    valid: np.ndarray,
-    antialiased: bool,
-    upstream: np.ndarray,
-    grads: np.ndarray,
-) -> None:  # pragma: no cover - compiled
-    """Gaussians [first, end) of `project_backward`."""
-    for i in range(first, end):
-        _backward_one(i, scene, view, valid, antialiased, upstream, grads)
+    span: tuple, scene: tuple, view: tuple, rest: tuple
+) -> None:  # pragma: no cover
+    """Gaussians [span[0], span[1]) of `project_backward`; rest: its other arguments."""
+    for i in range(span[0], span[1]):
+        _backward_one(i, scene, view, rest)
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _backward_one(
-    i: int,
-    scene: tuple,
-    view: tuple,
-    valid: np.ndarray,
-    antialiased: bool,
-    upstream: np.ndarray,
-    grads: np.ndarray,
-) -> None:  # pragma: no cover - compiled
-    """Gaussian i of `project_backward`: the forward recomputed, then the chain rule back
-    through the conic and opacity, the 2D covariance, the camera point and the rotation."""
+def _backward_one(i: int, scene: tuple, view: tuple, rest: tuple) -> None:  # pragma: no cover
+    """Gaussian i of `project_backward` (rest: its valid rows, antialiasing, upstream and
+    grads): the forward recomputed, then the chain rule back through the conic and
+    opacity, the 2D covariance, the camera point and the rotation."""
+    valid, antialiased, upstream, grads = rest
     means, quats, scales, opacities, finite = scene
     rot, trans, intrinsics, limits = view
     near, far, eps2d, quat_eps = limits[0], limits[1], limits[2], limits[4]
