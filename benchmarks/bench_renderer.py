@@ -390,15 +390,26 @@ def summarise(cases: list, renderers: list, runs: dict, rates: dict) -> list[dic
                 row["pairs"] = pairs
                 row["limit_ms"] = 1e3 * pairs * cost
             rows.append(row)
+        add_speedups([r for r in rows if r["case"] == case])
     return rows
+
+
+def add_speedups(rows: list[dict]) -> None:
+    """Each timed row of one case gets `speedup_vs_reference`: cpu-reference's median
+    total time over its own (forward + backward where the case has a backward)."""
+    reference = next((r for r in rows if r["renderer"] == "cpu-reference" and "total_ms" in r),
+                     None)  # fmt: skip
+    for row in rows:
+        if reference is not None and "total_ms" in row:
+            row["speedup_vs_reference"] = reference["total_ms"] / row["total_ms"]
 
 
 def print_table(rows: list[dict], rates: dict) -> None:
     flops, exps = rates["flops"] / 1e9, rates["exps"] / 1e9
     print(f"\nrates: {flops:.1f} GFLOP/s (float32 multiply-add), {exps:.2f} G exp/s")
-    header = ("case", "renderer", "fwd ms", "total ms", "compos.", "× limit", "max diff",
-              "peak MB", "steady")  # fmt: skip
-    print("{:>14} {:>14} {:>9} {:>9} {:>8} {:>8} {:>9} {:>8} {:>8}".format(*header))
+    header = ("case", "renderer", "fwd ms", "total ms", "× ref", "compos.", "× limit",
+              "max diff", "peak MB", "steady")  # fmt: skip
+    print("{:>14} {:>14} {:>9} {:>9} {:>6} {:>8} {:>8} {:>9} {:>8} {:>8}".format(*header))
     for r in rows:
         if "error" in r:
             print(f"{r['case']:>14} {r['renderer']:>14}  error: {r['error']}")
@@ -407,8 +418,10 @@ def print_table(rows: list[dict], rates: dict) -> None:
         diff = r.get("max_diff_vs_reference", math.nan)
         composite, peak = r.get("composite_ms", math.nan), r["peak_increase_mb"]
         steady = r.get("steady_peak_increase_mb", math.nan)
+        speedup = r.get("speedup_vs_reference", math.nan)
         print(f"{r['case']:>14} {r['renderer']:>14} {r['forward_ms']:9.1f} {r['total_ms']:9.1f} "
-              f"{composite:8.1f} {ratio:8.1f} {diff:9.2g} {peak:8.0f} {steady:8.0f}")  # fmt: skip
+              f"{speedup:6.1f} {composite:8.1f} {ratio:8.1f} {diff:9.2g} {peak:8.0f} "
+              f"{steady:8.0f}")  # fmt: skip
 
 
 if __name__ == "__main__":

@@ -48,3 +48,18 @@ def test_a_saved_scene_reads_back_as_it_was(tmp_path: Path) -> None:
     assert (again.fx, again.fy, again.cx, again.cy) == (300.0, 310.0, 11.5, 13.0)
     assert (again.width, again.height) == (24, 30)
     assert torch.equal(again.world_to_camera, camera.world_to_camera.float())
+
+
+def test_speedups_are_the_reference_time_over_each_renderers() -> None:
+    rows: list[dict] = [
+        {"case": "c", "renderer": "cpu-tile", "total_ms": 5.0},
+        {"case": "c", "renderer": "cpu-reference", "total_ms": 40.0},
+        {"case": "c", "renderer": "peer", "error": "failed"},
+    ]
+    bench_renderer.add_speedups(rows)
+    assert rows[0]["speedup_vs_reference"] == 8.0
+    assert rows[1]["speedup_vs_reference"] == 1.0
+    assert "speedup_vs_reference" not in rows[2]
+    alone: list[dict] = [{"case": "c", "renderer": "cpu-tile", "total_ms": 5.0}]
+    bench_renderer.add_speedups(alone)  # no reference timed: nothing to compare with
+    assert "speedup_vs_reference" not in alone[0]
