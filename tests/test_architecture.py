@@ -20,7 +20,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
         "foundation",
         (
             "dyngs.errors", "dyngs.types", "dyngs.ops", "dyngs.geometry", "dyngs.sh",
-            "dyngs.io", "dyngs.neighbors", "dyngs.ply", "dyngs.registry",
+            "dyngs.io", "dyngs.neighbors", "dyngs.ply", "dyngs.registry", "dyngs.compiled",
         ),
     ),
     ("components", ("dyngs.renderers", "dyngs.fields", "dyngs.losses", "dyngs.datamanagers",

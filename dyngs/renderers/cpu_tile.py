@@ -9,20 +9,16 @@ reach the 2D means (which densification reads), conics, opacities, colours and d
 and from there every Gaussian parameter. It is held to `cpu-reference`, the
 specification, by tests/renderers/test_cpu_tile.py and the hard cases.
 
-The kernels are compiled on first use and cached on disk (numba's cache, next to this
-module or under NUMBA_CACHE_DIR); the first render of a process that has to compile says
-so, and how long it took. Renders and gradients are the same on every run.
+The kernels are compiled on first use and cached on disk, and run one launch at a time
+(`dyngs.compiled`); the first render of a process that has to compile says so, and how
+long it took. Renders and gradients are the same on every run.
 
 Letters: N Gaussians, M tile–Gaussian pairs, H×W image.
 """
 
 from __future__ import annotations
 
-import importlib.util
 import math
-import sys
-import threading
-import time
 from dataclasses import dataclass
 from typing import Any
 
@@ -31,6 +27,7 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
+from dyngs.compiled import numba_available, run_kernel, thread_count
 from dyngs.errors import ConfigError, RendererUnavailable
 from dyngs.renderers.base import Guards, RenderOutput
 from dyngs.renderers.stages import (
@@ -48,7 +45,7 @@ from dyngs.types import Camera, Gaussians
 
 def cpu_tile_available() -> bool:
     """Whether numba, which compiles the kernels, is installed."""
-    return importlib.util.find_spec("numba") is not None
+    return numba_available()
 
 
 @dataclass(frozen=True)
@@ -179,46 +176,10 @@ class _Plan:
         return g.alpha_min, g.alpha_max, g.transmittance_min
 
 
-# Kernel launches are serialised: numba's fallback threading layer (workqueue) must not be
-# entered from two threads at once, and two renders would only share the cores anyway.
-_LOCK = threading.Lock()
-_COMPILED: set[str] = set()
-
-
-def _thread_count(threads: int | None) -> int:
-    """The configured threads (None: PyTorch's), within numba's pool."""
-    import numba
-
-    most = numba.config.NUMBA_NUM_THREADS  # type: ignore[attr-defined]  # set at import
-    return max(1, min(threads or torch.get_num_threads(), most))
-
-
 def _launch(kernel: Any, threads: int | None, *args: Any) -> None:
     """Run a compositing kernel (it takes the thread count last, to deal tiles)."""
-    count = _thread_count(threads)
-    _run(kernel, count, str(args[0][3].dtype), *args, count)
-
-
-def _run(kernel: Any, count: int, dtype: str, *args: Any) -> None:
-    """Run a kernel on `count` threads; the first call of a process that has to compile it
-    says so, and how long it took."""
-    import numba
-
-    key = f"{kernel.__name__}:{dtype}"
-    with _LOCK:
-        numba.set_num_threads(count)
-        if key in _COMPILED:
-            kernel(*args)
-            return
-        misses = sum(kernel.stats.cache_misses.values())
-        started = time.perf_counter()
-        kernel(*args)
-        _COMPILED.add(key)
-        if sum(kernel.stats.cache_misses.values()) > misses:
-            sys.stderr.write(
-                f"[cpu-tile] compiled {kernel.__name__} for {dtype} in "
-                f"{time.perf_counter() - started:.1f} s (cached on disk for later runs)\n"
-            )
+    count = thread_count(threads)
+    run_kernel(kernel, count, str(args[0][3].dtype), *args, count)
 
 
 def project_compiled(
@@ -238,9 +199,9 @@ def project_compiled(
     rows = tuple(_numpy(t).reshape(len(t), math.prod(t.shape[1:])) for t in params)  # N = 0 too
     finite = torch.empty(len(g.means), dtype=torch.bool)
     dtypes = "/".join(str(t.dtype)[6:] for t in params)  # compiled once for each combination
-    _run(pk.finite_rows, 1, dtypes, rows, finite.numpy())
+    run_kernel(pk.finite_rows, 1, dtypes, rows, finite.numpy())
     w2c = camera.world_to_camera.to(dtype=GEOMETRY_DTYPE)
-    view = _View(camera, guards, antialiased, finite.numpy(), w2c, _thread_count(threads))
+    view = _View(camera, guards, antialiased, finite.numpy(), w2c, thread_count(threads))
     geometry = (t.to(GEOMETRY_DTYPE) for t in params[:4])
     means2d, conics, opacities, depths, extents, visible = _Project.apply(*geometry, view)
     colors = torch.where(finite.view(-1, *[1] * (used.ndim - 1)), used, 0)
@@ -312,8 +273,8 @@ class _Project(torch.autograd.Function):
         out = tuple(np.empty((n, k) if k > 1 else n) for k in pk.OUT_COLUMNS)
         valid, visible = np.empty(n, dtype=np.bool_), np.empty(n, dtype=np.bool_)
         scene = (*inputs, view.finite)
-        _run(pk.project_forward, view.threads, "float64", scene, view.arrays(), view.antialiased,
-             out, valid, visible)  # fmt: skip
+        run_kernel(pk.project_forward, view.threads, "float64", scene, view.arrays(),
+                   view.antialiased, out, valid, visible)  # fmt: skip
         view.valid = valid
         ctx.view, ctx.inputs = view, inputs
         means2d, conics, opacity, depth, extents = (torch.from_numpy(a) for a in out)
@@ -335,8 +296,8 @@ class _Project(torch.autograd.Function):
                 upstream[:, lo:hi] = grad.detach().to(GEOMETRY_DTYPE).reshape(n, hi - lo).numpy()
         out = np.empty((n, pk.GRAD_COLUMNS))
         scene, valid = (*ctx.inputs, view.finite), view.valid
-        _run(pk.project_backward, view.threads, "float64", scene, view.arrays(), valid,
-             view.antialiased, upstream, out)  # fmt: skip
+        run_kernel(pk.project_backward, view.threads, "float64", scene, view.arrays(), valid,
+                   view.antialiased, upstream, out)  # fmt: skip
         result = torch.from_numpy(out)
         return result[:, 0:3], result[:, 3:7], result[:, 7:10], result[:, 10], None
 

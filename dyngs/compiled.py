@@ -1,0 +1,57 @@
+"""Running compiled (numba) kernels: one launch at a time, on a chosen number of threads,
+and a line on stderr the first time a process has to compile one.
+
+Launches are serialised: numba's fallback threading layer (workqueue) must not be entered
+from two threads at once (the web viewer renders from its own thread while training
+runs), and two launches would only share the cores anyway. Kernels are compiled on first
+use and cached on disk (numba's cache, next to their module or under NUMBA_CACHE_DIR).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+import threading
+import time
+from typing import Any
+
+import torch
+
+_LOCK = threading.Lock()
+_COMPILED: set[str] = set()
+
+
+def numba_available() -> bool:
+    """Whether numba, which compiles the kernels, is installed."""
+    return importlib.util.find_spec("numba") is not None
+
+
+def thread_count(threads: int | None) -> int:
+    """The configured threads (None: PyTorch's), within numba's pool."""
+    import numba
+
+    most = numba.config.NUMBA_NUM_THREADS  # type: ignore[attr-defined]  # set at import
+    return max(1, min(threads or torch.get_num_threads(), most))
+
+
+def run_kernel(kernel: Any, count: int, signature: str, *args: Any) -> None:
+    """Run `kernel(*args)` on `count` threads; the first call of a process that has to
+    compile it for `signature` (its argument types, in words) says so, and how long it
+    took."""
+    import numba
+
+    key = f"{kernel.__name__}:{signature}"
+    with _LOCK:
+        numba.set_num_threads(count)
+        if key in _COMPILED:
+            kernel(*args)
+            return
+        misses = sum(kernel.stats.cache_misses.values())
+        started = time.perf_counter()
+        kernel(*args)
+        _COMPILED.add(key)
+        if sum(kernel.stats.cache_misses.values()) > misses:
+            sys.stderr.write(
+                f"[dyngs] compiled {kernel.__name__} for {signature} in "
+                f"{time.perf_counter() - started:.1f} s (cached on disk for later runs)\n"
+            )
