@@ -42,16 +42,22 @@ def run_kernel(kernel: Any, count: int, signature: str, *args: Any) -> None:
 
     key = f"{kernel.__name__}:{signature}"
     with _LOCK:
+        torch_threads = torch.get_num_threads()
         numba.set_num_threads(count)
         if key in _COMPILED:
             kernel(*args)
-            return
-        misses = sum(kernel.stats.cache_misses.values())
-        started = time.perf_counter()
-        kernel(*args)
-        _COMPILED.add(key)
-        if sum(kernel.stats.cache_misses.values()) > misses:
-            sys.stderr.write(
-                f"[dyngs] compiled {kernel.__name__} for {signature} in "
-                f"{time.perf_counter() - started:.1f} s (cached on disk for later runs)\n"
-            )
+        else:
+            misses = sum(kernel.stats.cache_misses.values())
+            started = time.perf_counter()
+            kernel(*args)
+            _COMPILED.add(key)
+            if sum(kernel.stats.cache_misses.values()) > misses:
+                sys.stderr.write(
+                    f"[dyngs] compiled {kernel.__name__} for {signature} in "
+                    f"{time.perf_counter() - started:.1f} s (cached on disk for later runs)\n"
+                )
+        # numba's OpenMP pool is PyTorch's (one libgomp): starting it with its own size
+        # (all cores unless NUMBA_NUM_THREADS says otherwise) would change PyTorch's
+        # thread count too, e.g. from the 1 of OMP_NUM_THREADS=1 to 2.
+        if torch.get_num_threads() != torch_threads:
+            torch.set_num_threads(torch_threads)
