@@ -93,7 +93,7 @@ def _adjoint_channel(
     rows = padded_rows[r : r + height].copy()
     for p in range(r):
         rows[_reflect(p - r, height)] += padded_rows[p]
-        rows[_reflect(height + r + p - r, height)] += padded_rows[height + r + p]
+        rows[_reflect(height + p, height)] += padded_rows[height + r + p]
     # The rows' pass transposed, the same way along each row.
     padded = np.empty(width + 2 * r)
     for y in range(height):

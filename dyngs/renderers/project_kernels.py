@@ -129,6 +129,17 @@ def _project_2d(t: tuple, sig: tuple) -> tuple[float, float, float]:  # pragma: 
 
 
 @njit(cache=True, nogil=True, inline="always")
+def pixel_span(m: float, e: float, size: float) -> tuple[int, int]:  # pragma: no cover
+    """`stages.pixel_range` along one axis: the first and last pixel of [0, size) whose
+    centre (j + 0.5) lies within m ± e, clamped in float first (so that a huge box cannot
+    overflow the integer); empty when first > last. Projection (visibility) and binning
+    (`tile_kernels.bin_by_depth`) both use it."""
+    first = math.ceil(min(max(m - e - 0.5, -1.0), size))
+    last = math.floor(min(max(m + e - 0.5, -1.0), size))
+    return max(first, 0), min(last, int(size) - 1)
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _span(chunk: int, scene: tuple) -> tuple[int, int]:  # pragma: no cover - compiled
     """The Gaussians [first, end) of a chunk of `CHUNK`."""
     return chunk * CHUNK, min(scene[0].shape[0], (chunk + 1) * CHUNK)
@@ -206,11 +217,8 @@ def _forward_one(
     level = max(2 * math.log(o / alpha_min if good else 1.0), 0.0)
     ex = math.sqrt(level * max(a_d, 0.0)) * (1 + limits[5]) + limits[6]
     ey = math.sqrt(level * max(c_d, 0.0)) * (1 + limits[5]) + limits[6]
-    # `stages.pixel_range`: pixel j's centre is j + 0.5; clamped in float first.
-    lo_x = max(math.ceil(min(max(u - ex - 0.5, -1.0), width)), 0.0)
-    hi_x = min(math.floor(min(max(u + ex - 0.5, -1.0), width)), width - 1)
-    lo_y = max(math.ceil(min(max(v - ey - 0.5, -1.0), height)), 0.0)
-    hi_y = min(math.floor(min(max(v + ey - 0.5, -1.0), height)), height - 1)
+    lo_x, hi_x = pixel_span(u, ex, width)
+    lo_y, hi_y = pixel_span(v, ey, height)
     shown = good and lo_x <= hi_x and lo_y <= hi_y
     extent[i, 0] = ex if shown else 0.0
     extent[i, 1] = ey if shown else 0.0

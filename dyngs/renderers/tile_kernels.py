@@ -46,6 +46,8 @@ import numpy as np
 from numba import njit, prange, types
 from numba.extending import overload
 
+from dyngs.renderers.project_kernels import pixel_span
+
 _SKIP_MARGIN = 1e-2
 """A Gaussian is drawn on the rows where its exponent can reach ln(alpha_min) − this
 margin, far below any rounding of the exponent, so the cut never drops a pixel the exact
@@ -575,9 +577,9 @@ def bin_by_depth(
     layout: tuple,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover - compiled
     """`stages.bin_tiles` whole: the visible Gaussians in depth order (`stable_argsort`,
-    as `stages.depth_order`), each one's pixel box (`stages.pixel_range`, the same float64
-    operations) and the counting sort of `bin_pairs`. layout = (tiles_x, tile_size,
-    width, height)."""
+    as `stages.depth_order`), each one's pixel box (`project_kernels.pixel_span`, the
+    float64 operations of `stages.pixel_range`) and the counting sort of `bin_pairs`.
+    layout = (tiles_x, tile_size, width, height)."""
     tiles_x, tile_size, width, height = layout
     tiles = tiles_x * -(-height // tile_size)
     shown = np.flatnonzero(visible)
@@ -587,11 +589,8 @@ def bin_by_depth(
     for v in range(order.shape[0]):
         g = order[v]
         for axis, size in ((0, width), (1, height)):
-            m, e = means2d[g, axis], extents[g, axis]
-            first = math.ceil(min(max(m - e - 0.5, -1.0), float(size)))
-            last = math.floor(min(max(m + e - 0.5, -1.0), float(size)))
-            lo[v, axis] = max(int(first), 0)
-            hi[v, axis] = min(int(last), size - 1)
+            span = pixel_span(means2d[g, axis], extents[g, axis], float(size))
+            lo[v, axis], hi[v, axis] = span
     return bin_pairs(order, lo, hi, tile_size, tiles_x, tiles)
 
 
