@@ -270,6 +270,7 @@ def test_gradcheck_of_the_compiled_projection(antialiased: bool) -> None:
         (2, 1200, 130, 70, 4),
         (3, 50, 20, 10, 32),
         (4, 3000, 101, 101, 1),
+        (5, 800, 45, 38, 7),  # a tile size that is not a power of two
     ],
 )
 def test_compiled_binning_gives_the_reference_bins(
