@@ -26,6 +26,26 @@ def numba_available() -> bool:
     return importlib.util.find_spec("numba") is not None
 
 
+def noalias_option() -> dict[str, Any]:
+    """`{"noalias": True}`, for `njit(**noalias_option())`, where this numba can mark a
+    function's array arguments `noalias` (LLVM's `restrict`); `{}` where it cannot.
+
+    numba lowers a function with that flag so (it has it internally, for parallel
+    regions) but has no decorator option for it (numba PR 9108, abandoned): this maps one.
+    Without it LLVM cannot tell two arrays apart, and before a loop that writes one and
+    reads another it checks at run time that they do not overlap, on every entry to the
+    loop. Only for functions whose array arguments truly never share memory: an overlap
+    is then undefined behaviour, not a slow path."""
+    from numba.core import compiler, cpu, options
+
+    if not hasattr(compiler.Flags, "noalias"):
+        return {}
+    if not hasattr(cpu.CPUTargetOptions, "noalias"):
+        mapping = options.TargetOptions.Mapping("noalias")
+        cpu.CPUTargetOptions.noalias = mapping  # type: ignore[attr-defined]
+    return {"noalias": True}
+
+
 def thread_count(threads: int | None) -> int:
     """The configured threads (None: PyTorch's), within numba's pool."""
     import numba

@@ -46,7 +46,10 @@ import numpy as np
 from numba import njit, prange, types
 from numba.extending import overload
 
+from dyngs.compiled import noalias_option
 from dyngs.renderers.project_kernels import pixel_span
+
+_NOALIAS = noalias_option()
 
 _SKIP_MARGIN = 1e-2
 """A Gaussian is drawn on the rows where its exponent can reach ln(alpha_min) − this
@@ -274,7 +277,6 @@ def _forward_tile(
 ) -> tuple[int, int]:  # pragma: no cover - compiled
     """One tile of `composite_forward`: its Gaussians front to back, until every pixel
     has stopped. Returns the lanes run and pairs drawn."""
-    gaussian, tile_start, tile_count = scene[4], scene[5], scene[6]
     x0, y0, x1, y1 = _tile_box(tile, layout)
     width, rows = x1 - x0, y1 - y0
     centres = _centres(x0, y0, width, rows)
@@ -288,22 +290,9 @@ def _forward_tile(
     acc = (np.zeros(cells), np.zeros(cells), np.zeros(cells), np.zeros(cells), np.zeros(cells))
     taken = np.full(cells, -1, dtype=np.int64)
     weights = np.zeros(cells)  # w of the current pair, per cell
-    log_alpha_min = math.log(limits[0])
-    active = rows * width
-    lanes = pairs = 0
-    start = tile_start[tile]
-    for k in range(tile_count[tile]):
-        if active == 0:
-            break
-        drawn, stopped, ran, took = _forward_gaussian(
-            scene, gaussian[start + k], k, (x0, y0, x1, y1), limits, log_alpha_min, centres,
-            running, acc, taken, weights, contribution.shape[0] > 0,
-        )  # fmt: skip
-        active -= stopped
-        lanes += ran
-        pairs += took
-        if contribution.shape[0] > 0:
-            contribution[start + k] = drawn
+    box = (x0, y0, x1, y1)
+    lanes, pairs = _forward_list(scene, tile, box, limits, centres, running, acc, taken,
+                                 weights, contribution)  # fmt: skip
     for r in range(rows):
         for i in range(width):
             p = _cell(r, i, rows)
@@ -311,6 +300,46 @@ def _forward_tile(
                 sums[y0 + r, x0 + i, j] = acc[j][p]
             transmittance[y0 + r, x0 + i] = abs(running[p])
             last[y0 + r, x0 + i] = taken[p]
+    return lanes, pairs
+
+
+# One call a tile, with the tile's pixel state as arguments: `noalias` tells LLVM that
+# no two of them overlap (numba marks every array argument so; each is its own allocation
+# or a distinct input), which it cannot know of arrays allocated in the caller, so the
+# per-cell loop no longer checks the arrays against each other before every run.
+@njit(cache=True, nogil=True, **_NOALIAS)
+def _forward_list(
+    scene: tuple,
+    tile: int,
+    box: tuple,
+    limits: tuple,
+    centres: tuple,
+    running: np.ndarray,
+    acc: tuple,
+    taken: np.ndarray,
+    weights: np.ndarray,
+    contribution: np.ndarray,
+) -> tuple[int, int]:  # pragma: no cover - compiled
+    """The tile's Gaussians front to back, until every pixel has stopped: the lanes run
+    and pairs drawn."""
+    gaussian, tile_start, tile_count = scene[4], scene[5], scene[6]
+    x0, y0, x1, y1 = box
+    log_alpha_min = math.log(limits[0])
+    active = (y1 - y0) * (x1 - x0)
+    lanes = pairs = 0
+    start = tile_start[tile]
+    for k in range(tile_count[tile]):
+        if active == 0:
+            break
+        drawn, stopped, ran, took = _forward_gaussian(
+            scene, gaussian[start + k], k, box, limits, log_alpha_min, centres, running,
+            acc, taken, weights, contribution.shape[0] > 0,
+        )  # fmt: skip
+        active -= stopped
+        lanes += ran
+        pairs += took
+        if contribution.shape[0] > 0:
+            contribution[start + k] = drawn
     return lanes, pairs
 
 
@@ -404,12 +433,7 @@ def composite_backward(
                            last, pair_grads)  # fmt: skip
 
 
-# Two flags make the per-cell loop vectorise: division without numba's zero check (1 − α
-# is at least 0.01), and sums over a pair's cells that LLVM may reassociate into one
-# partial sum per vector lane. That order is fixed by the compiled code, so gradients are
-# still the same on every run and at every thread count; they differ from a sum in cell
-# order only in rounding.
-@njit(cache=True, nogil=True, error_model="numpy", fastmath={"reassoc"})
+@njit(cache=True, nogil=True)
 def _backward_tile(
     scene: tuple,
     tile: int,
@@ -422,7 +446,7 @@ def _backward_tile(
 ) -> None:  # pragma: no cover - compiled
     """One tile of `composite_backward`: its Gaussians back to front, from the deepest
     pair any pixel drew."""
-    gaussian, tile_start, tile_count = scene[4], scene[5], scene[6]
+    tile_start, tile_count = scene[5], scene[6]
     x0, y0, x1, y1 = _tile_box(tile, layout)
     width, rows = x1 - x0, y1 - y0
     centres = _centres(x0, y0, width, rows)
@@ -439,13 +463,38 @@ def _backward_tile(
             taken[p] = last[y0 + r, x0 + i]
             for j in range(5):
                 upstream[j][p] = grad_sums[y0 + r, x0 + i, j]
-    log_alpha_min = math.log(limits[0])
     start = tile_start[tile]
     deepest = taken.max() if cells > 0 else -1
     pair_grads[start + deepest + 1 : start + tile_count[tile]] = 0.0
+    _backward_list(scene, tile, (x0, y0, x1, y1), limits, centres, trans, rest, taken,
+                   upstream, pair_grads, deepest)  # fmt: skip
+
+
+# Two flags make the per-cell loop vectorise: division without numba's zero check (1 − α
+# is at least 0.01), and sums over a pair's cells that LLVM may reassociate into one
+# partial sum per vector lane. That order is fixed by the compiled code, so gradients are
+# still the same on every run and at every thread count; they differ from a sum in cell
+# order only in rounding. `noalias` as for `_forward_list`.
+@njit(cache=True, nogil=True, error_model="numpy", fastmath={"reassoc"}, **_NOALIAS)
+def _backward_list(
+    scene: tuple,
+    tile: int,
+    box: tuple,
+    limits: tuple,
+    centres: tuple,
+    trans: np.ndarray,
+    rest: np.ndarray,
+    taken: np.ndarray,
+    upstream: tuple,
+    pair_grads: np.ndarray,
+    deepest: int,
+) -> None:  # pragma: no cover - compiled
+    """The tile's Gaussians back to front, from the deepest pair any pixel drew."""
+    gaussian, start = scene[4], scene[5][tile]
+    log_alpha_min = math.log(limits[0])
     for k in range(deepest, -1, -1):
-        _backward_gaussian(scene, gaussian[start + k], k, (x0, y0, x1, y1), limits,
-                           log_alpha_min, centres, trans, rest, taken, upstream,
+        _backward_gaussian(scene, gaussian[start + k], k, box, limits, log_alpha_min,
+                           centres, trans, rest, taken, upstream,
                            pair_grads[start + k])  # fmt: skip
 
 
