@@ -200,15 +200,19 @@ def project_compiled(
     finite = torch.empty(len(g.means), dtype=torch.bool)
     dtypes = "/".join(str(t.dtype)[6:] for t in params)  # compiled once for each combination
     run_kernel(pk.finite_rows, 1, dtypes, rows, finite.numpy())
+    nonfinite = len(finite) - int(np.count_nonzero(finite.numpy()))
     w2c = camera.world_to_camera.to(dtype=GEOMETRY_DTYPE)
     view = _View(camera, guards, antialiased, finite.numpy(), w2c, thread_count(threads))
     geometry = (t.to(GEOMETRY_DTYPE) for t in params[:4])
     means2d, conics, opacities, depths, extents, visible = _Project.apply(*geometry, view)
-    colors = torch.where(finite.view(-1, *[1] * (used.ndim - 1)), used, 0)
+    # Rows with a non-finite entry are zeroed (their gradients too); most renders have none.
+    colors = torch.where(finite.view(-1, *[1] * (used.ndim - 1)), used, 0) if nonfinite else used
     if g.sh_degree is None:
         rgb = colors
     else:
-        means = torch.where(finite[:, None], g.means, 0).to(GEOMETRY_DTYPE)
+        means = (torch.where(finite[:, None], g.means, 0) if nonfinite else g.means).to(
+            GEOMETRY_DTYPE
+        )
         center = -w2c[:3, :3].T @ w2c[:3, 3]
         rgb = eval_sh(g.sh_degree, colors, (means - center).to(g.means.dtype))
     return ScreenGaussians(
@@ -219,7 +223,7 @@ def project_compiled(
         colors=rgb,
         extents=extents,
         visible=visible,
-        num_nonfinite=(~finite).sum(),
+        num_nonfinite=torch.tensor(nonfinite),
     )
 
 
@@ -381,7 +385,7 @@ class _Composite(torch.autograd.Function):
         plan: _Plan = ctx.plan
         scene, order, transmittance, last = ctx.state
         pair_grads = np.empty((len(scene[4]), tile_kernels.PAIR_GRADS))
-        upstream = grad_sums.detach().to(torch.float64).contiguous().numpy()
+        upstream = _numpy(grad_sums)  # the kernel widens it to float64 as it reads it
         _launch(tile_kernels.composite_backward, plan.threads, scene, order, plan.layout(),
                 plan.limits(), upstream, transmittance, last, pair_grads)  # fmt: skip
         grads = torch.from_numpy(_per_gaussian(plan.bins, pair_grads, len(scene[0])))
