@@ -422,7 +422,8 @@ def composite_backward(
     `threads` threads.
 
     grad_sums [H, W, 5] is in any float dtype (read as float64); transmittance and last
-    are what `composite_forward` left. Writes pair_grads [M, `PAIR_GRADS`] for every pair of the tiles in `tile_order`.
+    are what `composite_forward` left. Writes pair_grads [M, `PAIR_GRADS`] for every pair
+    of the tiles in `tile_order`.
     With w = α T and s = ∂L/∂(Σ w f) · f for a pixel, ∂L/∂α of pair k is
     T_k (s_k − R_k), where R_k = Σ_{j>k} s_j w_j / T_{k+1} is carried back to front:
     R_{k−1} = s_k α_k + (1 − α_k) R_k.
