@@ -210,11 +210,9 @@ def project_compiled(
     if g.sh_degree is None:
         rgb = colors
     else:
-        means = (torch.where(finite[:, None], g.means, 0) if nonfinite else g.means).to(
-            GEOMETRY_DTYPE
-        )
+        means = torch.where(finite[:, None], g.means, 0) if nonfinite else g.means
         center = -w2c[:3, :3].T @ w2c[:3, 3]
-        rgb = eval_sh(g.sh_degree, colors, (means - center).to(g.means.dtype))
+        rgb = eval_sh(g.sh_degree, colors, (means.to(GEOMETRY_DTYPE) - center).to(g.means.dtype))
     return ScreenGaussians(
         means2d=means2d,
         conics=conics,
