@@ -15,11 +15,13 @@ import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from jaxtyping import Float
 from torch import Tensor, nn
 
+from dyngs.compiled import numba_available, run_kernel, thread_count
 from dyngs.errors import ConfigError
 from dyngs.fields._common import space_time
 from dyngs.fields.base import PlaneGrids
@@ -212,10 +214,10 @@ class HexPlaneField(nn.Module):
     def forward(self, xyz: Float[Tensor, "N 3"], t: Float[Tensor, "N 1"]) -> Float[Tensor, "N F"]:
         full = self.normalize(xyz, t)
         n = full.shape[0]
-        scales: list[Tensor] = []
+        samples: list[list[Tensor]] = []  # per scale, its groups' [G, F, 1, N] samples
         for s, groups in enumerate(self._groups):
             coords = full if not self._cropped[s] else self._local(full, s)
-            product: Tensor | None = None
+            samples.append([])
             for index, name, is_time in groups:
                 param = self.grids[index]
                 g = param.shape[0]
@@ -233,14 +235,10 @@ class HexPlaneField(nn.Module):
                     ).add_(1.0)
                 else:
                     sampled = F.grid_sample(param, grid, "bilinear", "border", align_corners=True)
-                # sampled: [G, F, 1, N]. unbind, not indexing: its backward stacks the G
-                # gradients once instead of zero-filling a [G, F, 1, N] tensor per plane.
-                for part in sampled.unbind(0):
-                    product = part if product is None else product * part
-            assert product is not None  # every scale has six planes
-            scales.append(product.view(self.config.features, n).t())
-        # S × [N, F] (transposed views) -> [N, S·F], one copy.
-        return torch.cat(scales, dim=1)
+                samples[-1].append(sampled)
+        if full.device.type == "cpu" and numba_available():
+            return compiled_products(samples)
+        return plane_products(samples)
 
     def _local(self, coords: Float[Tensor, "N 4"], scale: int) -> Float[Tensor, "N 4"]:
         """Coordinates in scale `scale`'s planes: its [lo, hi] span mapped to [-1, 1]."""
@@ -358,6 +356,73 @@ class HexPlaneField(nn.Module):
             f"resolution={c.resolution or DEFAULT_RESOLUTION}, multires={c.multires}, "
             f"features={c.features}, out_dim={self.out_dim}"
         )
+
+
+def plane_products(samples: Sequence[Sequence[Tensor]]) -> Float[Tensor, "N SF"]:
+    """Each scale's six sampled planes multiplied in order, ((((p0·p1)·p2)·p3)·p4)·p5,
+    and the S products side by side: [N, S·F]. `samples` holds, per scale, its groups'
+    [G, F, 1, N] samples (`HexPlaneField.forward`). The reference in PyTorch operations,
+    used off the CPU; `compiled_products` is the same to the bit."""
+    scales: list[Tensor] = []
+    for groups in samples:
+        product: Tensor | None = None
+        for sampled in groups:
+            # unbind, not indexing: its backward stacks the G gradients once instead of
+            # zero-filling a [G, F, 1, N] tensor per plane.
+            for part in sampled.unbind(0):
+                product = part if product is None else product * part
+        assert product is not None  # every scale has six planes
+        channels, _, n = product.shape
+        scales.append(product.view(channels, n).t())
+    # S × [N, F] (transposed views) -> [N, S·F], one copy.
+    return torch.cat(scales, dim=1)
+
+
+def compiled_products(samples: Sequence[Sequence[Tensor]]) -> Float[Tensor, "N SF"]:
+    """`plane_products` in one compiled pass each way (`product_kernels`), on the CPU."""
+    flat = [sampled for groups in samples for sampled in groups]
+    return _PlaneProduct.apply(len(samples), *flat)
+
+
+class _PlaneProduct(torch.autograd.Function):
+    """The [G, F, 1, N] samples of every scale's plane groups → their per-scale products
+    side by side, [N, S·F]."""
+
+    @staticmethod
+    def forward(ctx, scales: int, *flat: Tensor) -> Tensor:  # type: ignore[override]
+        from dyngs.fields import product_kernels
+
+        channels, n = flat[0].shape[1], flat[0].shape[-1]
+        out = torch.empty(scales * channels, n, dtype=flat[0].dtype)
+        run_kernel(product_kernels.product_forward, thread_count(None), str(out.dtype),
+                   _planes(flat, scales), out.numpy())  # fmt: skip
+        ctx.scales = scales
+        ctx.save_for_backward(*flat)
+        return out.t().contiguous()
+
+    @staticmethod
+    def backward(ctx, grad: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
+        from dyngs.fields import product_kernels
+
+        flat = ctx.saved_tensors
+        grads = tuple(torch.empty_like(sampled) for sampled in flat)
+        upstream = grad.t().contiguous()
+        run_kernel(product_kernels.product_backward, thread_count(None), str(upstream.dtype),
+                   _planes(flat, ctx.scales), upstream.numpy(),
+                   _planes(grads, ctx.scales))  # fmt: skip
+        return (None, *grads)
+
+
+def _planes(flat: Sequence[Tensor], scales: int) -> tuple[np.ndarray, ...]:
+    """The [G, F, 1, N] samples of `scales` scales as every scale's six planes in turn,
+    [F, N] arrays (views), in the order they multiply."""
+    planes: list[np.ndarray] = []
+    for sampled in flat:
+        assert sampled.is_contiguous()  # a reshaped copy would lose the kernels' writes
+        g, channels, _, n = sampled.shape
+        planes.extend(sampled.detach().numpy().reshape(g, channels, n))
+    assert len(planes) == len(PLANE_AXES) * scales  # every scale has six planes
+    return tuple(planes)
 
 
 def _node_range(first: int, last: int, size: int) -> tuple[int, int]:

@@ -1,0 +1,96 @@
+"""Time the HexPlane field's plane products both ways: PyTorch operations
+(`hexplane.plane_products`, the reference) against the compiled pass
+(`hexplane.compiled_products`, the default on CPUs).
+
+    python benchmarks/time_products.py --threads 1 --output benchmarks/results/products.json
+
+For each feature width, one training step's deformation work: the field at N random
+points and times (the demo's data-sized grid, 35³ × 13, two scales) and the deformation
+head, forward and backward, the two products interleaved round by round in one process.
+Medians over --repeats rounds after a warm-up; the figures go to --output as JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from dyngs.fields import DeformationHeadConfig, HexPlaneConfig, hexplane  # noqa: E402
+from dyngs.tools.common import machine_info, source_commit  # noqa: E402
+from dyngs.types import SceneBox  # noqa: E402
+
+WAYS = {"pytorch": hexplane.plane_products, "compiled": hexplane.compiled_products}
+
+
+def time_width(features: int, points: int, repeats: int) -> dict[str, float]:
+    """Median ms of the field and head forward and backward, each way."""
+    generator = torch.Generator().manual_seed(0)
+    box = SceneBox((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
+    config = HexPlaneConfig(resolution=(35, 35, 35, 13), features=features)
+    field = config.build(box, generator=generator)
+    with torch.no_grad():
+        for grid in field.grids:  # departures from the static start, as after training
+            grid.add_(0.1 * torch.randn(grid.shape, generator=generator))
+    head = DeformationHeadConfig().build(field.out_dim, box, generator=generator)
+    xyz = (2 * torch.rand(points, 3, generator=generator) - 1).requires_grad_(True)
+    t = torch.rand(points, 1, generator=generator)
+
+    def step() -> None:
+        deltas = head(field(xyz, t))
+        assert deltas.quats is not None
+        (deltas.means.sum() + deltas.quats.sum()).backward()
+
+    times: dict[str, list[float]] = {way: [] for way in WAYS}
+    for round_ in range(repeats + 3):
+        for way, combine in WAYS.items():
+            hexplane.compiled_products = combine  # what the field's forward calls
+            started = time.perf_counter()
+            step()
+            if round_ >= 3:
+                times[way].append(1e3 * (time.perf_counter() - started))
+    hexplane.compiled_products = WAYS["compiled"]
+    return {way: statistics.median(spent) for way, spent in times.items()}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--points", type=int, default=7000, help="the demo's dynamic Gaussians")
+    parser.add_argument("--features", type=int, nargs="+", default=[16, 32])
+    parser.add_argument("--repeats", type=int, default=40)
+    parser.add_argument("--output", type=Path, default=ROOT / "benchmarks/results/products.json")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    rows = []
+    for features in args.features:
+        medians = time_width(features, args.points, args.repeats)
+        rows.append({"features": features, "points": args.points, **medians})
+        print(
+            f"{features} features, {args.points} points: field and head forward + backward "
+            f"{medians['pytorch']:.2f} ms with PyTorch's products, "
+            f"{medians['compiled']:.2f} ms compiled"
+        )
+    result = {
+        "command": " ".join(sys.argv),
+        "commit": source_commit(ROOT),
+        "machine": machine_info(args.threads),
+        "threads": args.threads,
+        "repeats": args.repeats,
+        "rows": rows,
+    }
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    args.output.write_text(json.dumps(result, indent=2) + "\n")
+    print(f"wrote {args.output}")
+
+
+if __name__ == "__main__":
+    main()
