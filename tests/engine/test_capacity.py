@@ -24,7 +24,12 @@ from dyngs.engine.capacity import (
 from dyngs.engine.densify import DensifyConfig, DensifyState, plan_refinement
 from dyngs.engine.trainer import Trainer
 from dyngs.engine.writer import NullWriter
-from dyngs.fields.hexplane import HexPlaneConfig, data_sized_resolution, time_cells
+from dyngs.fields.hexplane import (
+    HexPlaneConfig,
+    data_sized_resolution,
+    feature_channels,
+    time_cells,
+)
 from dyngs.types import DataScale, SceneBox
 from tests.engine.helpers import TINY_SCENE, assert_same_state, tiny_config, tiny_trainer
 
@@ -56,6 +61,22 @@ def test_time_cells_follow_the_views_of_each_time(views_per_time: int, cells: in
     assert time_cells(unknown) == 10
 
 
+@pytest.mark.parametrize(("views_per_time", "channels"), [(1, 16), (1.5, 16), (2, 32), (12, 32)])
+def test_feature_channels_follow_the_views_of_each_time(
+    views_per_time: float, channels: int
+) -> None:
+    """A monocular sequence gets 16 channels a plane, two or more views of each time 32."""
+    box = SceneBox(lower=(-1.0, -1.0, -1.0), upper=(1.0, 1.0, 1.0))
+    scale = DataScale(box=box, pixel_size=0.01, num_timestamps=60, image_pixels=10_000,
+                      viewpoints=12, views=int(60 * views_per_time))  # fmt: skip
+    assert feature_channels(scale) == channels
+    sized = HexPlaneConfig().sized_for(scale)
+    assert sized.features == channels
+    assert sized.build(box).out_dim == channels * len(sized.multires)
+    assert HexPlaneConfig(features=8).sized_for(scale).features == 8  # given: kept
+    assert HexPlaneConfig().build(box).out_dim == 16 * 2  # built without data
+
+
 def test_the_budget_grows_with_pixels_and_viewpoints() -> None:
     small, large = _scene(), _scene(resolution=128)
     many_views = _scene(resolution=128, views_per_time=12)
@@ -70,10 +91,12 @@ def test_explicit_sizes_are_kept_and_missing_ones_filled() -> None:
     resolved = resolve_capacity(TrainConfig(), scene)
     assert isinstance(resolved.field, HexPlaneConfig)
     assert resolved.field.resolution == data_sized_resolution(data_scale(scene))
+    assert resolved.field.features == feature_channels(data_scale(scene))
     assert resolved.densify.max_gaussians == gaussian_budget(data_scale(scene))
     assert resolved.gaussians.max_init_points == gaussian_budget(data_scale(scene))
     explicit = TrainConfig(
-        field=HexPlaneConfig(resolution=(5, 6, 7, 8)), densify=DensifyConfig(max_gaussians=1234)
+        field=HexPlaneConfig(resolution=(5, 6, 7, 8), features=8),
+        densify=DensifyConfig(max_gaussians=1234),
     )
     kept = resolve_capacity(explicit, scene)
     assert kept.field == explicit.field and kept.densify.max_gaussians == 1234
