@@ -174,6 +174,9 @@ class HexPlaneField(nn.Module):
     """
 
     out_dim: int
+    features: int
+    """Channels per plane and scale (the config's, or DEFAULT_FEATURES when it left them
+    for the data and was built without)."""
     extent: Tensor
 
     def __init__(
@@ -186,7 +189,7 @@ class HexPlaneField(nn.Module):
         super().__init__()
         self.config = config
         self.box = box
-        features = config.features or DEFAULT_FEATURES
+        self.features = features = config.features or DEFAULT_FEATURES
         self.out_dim = features * len(config.multires)
 
         low, high = config.init_range
@@ -373,7 +376,7 @@ class HexPlaneField(nn.Module):
         c = self.config
         return (
             f"resolution={c.resolution or DEFAULT_RESOLUTION}, multires={c.multires}, "
-            f"features={self.out_dim // len(c.multires)}, out_dim={self.out_dim}"
+            f"features={self.features}, out_dim={self.out_dim}"
         )
 
 

@@ -93,7 +93,7 @@ def _brute_force(field: HexPlaneField, xyz: Tensor, t: Tensor) -> Tensor:
         coords = [min(max(c, -1.0), 1.0) for c in (*unit, 2 * time[0] - 1)]
         per_scale = []
         for s in range(scales):
-            product = torch.ones(field.config.features, dtype=torch.float64)
+            product = torch.ones(field.features, dtype=torch.float64)
             for p, (a, b) in enumerate(PLANE_AXES):
                 plane = planes.spatial[3 * s + p] if p < 3 else planes.temporal[3 * s + p - 3]
                 product = product * _bilinear(plane.detach(), coords[a], coords[b])

@@ -56,7 +56,7 @@ def _reference(field: HexPlaneField, xyz: Tensor, t: Tensor) -> Tensor:
         coords = [*unit, min(max(2 * time - 1, -1.0), 1.0)]
         feats = []
         for s in range(scales):
-            product = torch.ones(field.config.features, dtype=xyz.dtype)
+            product = torch.ones(field.features, dtype=xyz.dtype)
             for k, (a, b) in enumerate(PLANE_AXES):
                 plane = planes.spatial[3 * s + k] if k < 3 else planes.temporal[3 * s + k - 3]
                 product = product * _bilinear(plane.detach(), coords[a], coords[b])
