@@ -14,7 +14,6 @@ writes the figures to `--output` as JSON.
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import sys
 import time
@@ -28,7 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from dyngs.fields import DeformationHead, DeformationHeadConfig  # noqa: E402
-from dyngs.tools.common import machine_info, source_commit  # noqa: E402
+from dyngs.tools.common import write_report  # noqa: E402
 from dyngs.types import SceneBox  # noqa: E402
 
 BRANCHES = ("means", "quats", "scales")
@@ -103,16 +102,7 @@ def main() -> None:
         print(f"{rows} rows: as built {ms['as_built']:.2f} ms, a ReLU per branch "
               f"{ms['per_branch']:.2f} ms ({result['saved']:.0%} saved)")  # fmt: skip
         results.append(result)
-    report = {
-        "command": " ".join(sys.argv),
-        "commit": source_commit(ROOT),
-        "machine": machine_info(args.threads),
-        "repeats": args.repeats,
-        "results": results,
-    }
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(json.dumps(report, indent=1) + "\n")
-    print(f"wrote {args.output}")
+    write_report(args.output, ROOT, args.threads, repeats=args.repeats, results=results)
 
 
 if __name__ == "__main__":

@@ -13,7 +13,6 @@ Medians over --repeats rounds after a warm-up; the figures go to --output as JSO
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import sys
 import time
@@ -25,7 +24,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from dyngs.fields import DeformationHeadConfig, HexPlaneConfig, hexplane  # noqa: E402
-from dyngs.tools.common import machine_info, source_commit  # noqa: E402
+from dyngs.tools.common import write_report  # noqa: E402
 from dyngs.types import SceneBox  # noqa: E402
 
 WAYS = {"pytorch": hexplane.plane_products, "compiled": hexplane.compiled_products}
@@ -79,17 +78,7 @@ def main() -> None:
             f"{medians['pytorch']:.2f} ms with PyTorch's products, "
             f"{medians['compiled']:.2f} ms compiled"
         )
-    result = {
-        "command": " ".join(sys.argv),
-        "commit": source_commit(ROOT),
-        "machine": machine_info(args.threads),
-        "threads": args.threads,
-        "repeats": args.repeats,
-        "rows": rows,
-    }
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(json.dumps(result, indent=2) + "\n")
-    print(f"wrote {args.output}")
+    write_report(args.output, ROOT, args.threads, repeats=args.repeats, rows=rows)
 
 
 if __name__ == "__main__":

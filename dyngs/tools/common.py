@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import json
 import platform
 import subprocess
 import sys
@@ -40,6 +41,20 @@ def source_commit(root: Path) -> str:
     done = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root,
                           capture_output=True, text=True)  # fmt: skip
     return done.stdout.strip()
+
+
+def write_report(output: Path, root: Path, threads: int, **figures: Any) -> None:
+    """Write a benchmark's `figures` to `output` as JSON, after the command that made them,
+    the commit checked out at `root` and the machine (`machine_info`), and say where."""
+    report = {
+        "command": " ".join(sys.argv),
+        "commit": source_commit(root),
+        "machine": machine_info(threads),
+        **figures,
+    }
+    output.parent.mkdir(parents=True, exist_ok=True)
+    output.write_text(json.dumps(report, indent=1) + "\n")
+    print(f"wrote {output}")
 
 
 @contextmanager

@@ -8,6 +8,7 @@ from __future__ import annotations
 import importlib.util
 import math
 import shutil
+import sys
 from pathlib import Path
 from types import ModuleType
 
@@ -35,6 +36,19 @@ def load_benchmark(name: str) -> ModuleType:
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+def run_benchmark_main(
+    module: ModuleType, argv: list[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A benchmark script's `main()` with `argv` as its command line, PyTorch's thread
+    count (which the scripts set) put back afterwards."""
+    monkeypatch.setattr(sys, "argv", [f"{module.__name__}.py", *argv])
+    threads = torch.get_num_threads()
+    try:
+        module.main()
+    finally:
+        torch.set_num_threads(threads)
 
 
 @pytest.fixture(scope="session")

@@ -3,13 +3,12 @@
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
 import pytest
 import torch
 
-from tests.tools.conftest import load_benchmark
+from tests.tools.conftest import load_benchmark, run_benchmark_main
 
 
 def test_the_reference_is_the_head_and_the_report_says_so(
@@ -23,14 +22,8 @@ def test_the_reference_is_the_head_and_the_report_says_so(
         assert torch.equal(a, b) and bool(a.abs().sum() > 0)
 
     output = tmp_path / "head.json"
-    argv = ["time_head.py", "--rows", "40", "--features", "8", "--repeats", "2",
-            "--output", str(output)]  # fmt: skip
-    monkeypatch.setattr(sys, "argv", argv)
-    threads = torch.get_num_threads()
-    try:
-        time_head.main()
-    finally:
-        torch.set_num_threads(threads)
+    argv = ["--rows", "40", "--features", "8", "--repeats", "2", "--output", str(output)]
+    run_benchmark_main(time_head, argv, monkeypatch)
     report = json.loads(output.read_text())
     (result,) = report["results"]
     assert result["rows"] == 40 and result["features"] == 8

@@ -4,14 +4,12 @@ it found it."""
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
 import pytest
-import torch
 
 from dyngs.fields import hexplane
-from tests.tools.conftest import load_benchmark
+from tests.tools.conftest import load_benchmark, run_benchmark_main
 
 
 def test_both_products_are_timed_and_the_default_restored(
@@ -19,14 +17,8 @@ def test_both_products_are_timed_and_the_default_restored(
 ) -> None:
     time_products = load_benchmark("time_products")
     output = tmp_path / "products.json"
-    argv = ["time_products.py", "--points", "50", "--features", "4", "--repeats", "2",
-            "--output", str(output)]  # fmt: skip
-    monkeypatch.setattr(sys, "argv", argv)
-    threads = torch.get_num_threads()
-    try:
-        time_products.main()
-    finally:
-        torch.set_num_threads(threads)
+    argv = ["--points", "50", "--features", "4", "--repeats", "2", "--output", str(output)]
+    run_benchmark_main(time_products, argv, monkeypatch)
     assert time_products.hexplane.compiled_products is hexplane.compiled_products
     assert hexplane.compiled_products is time_products.WAYS["compiled"]
     report = json.loads(output.read_text())
