@@ -111,9 +111,9 @@ width, Wu et al. 2024)."""
 def feature_channels(scale: DataScale) -> int:
     """Channels per plane and scale for a scene: 16 when one view sees each time, 32 when
     two or more do. With one view per time, as with a finer time grid (`time_cells`),
-    more channels let the field fit each frame as its one viewpoint saw it: on five
-    monocular MuJoCo scenes 32 channels lost 0.5-1.3 dB, where on the built-in scene (two
-    views of each time) they gained 0.4 dB on every seed (docs/ACCURACY.md)."""
+    more channels let the field fit each frame as its one viewpoint saw it: 32 lost on
+    every monocular scene measured and gained on every seed of the built-in scene, two
+    views of each time (docs/ACCURACY.md, "Field channels from the views of each time")."""
     return DEFAULT_FEATURES if scale.views_per_timestamp < 2 else MULTI_VIEW_FEATURES
 
 
