@@ -17,7 +17,6 @@ the figures to `--output` as JSON.
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import sys
 import tempfile
@@ -39,7 +38,7 @@ from bench_renderer import (  # noqa: E402
 )
 
 from dyngs.renderers.cpu_tile import CpuTileConfig  # noqa: E402
-from dyngs.tools.common import machine_info, source_commit  # noqa: E402
+from dyngs.tools.common import write_report  # noqa: E402
 from dyngs.types import Camera, Gaussians  # noqa: E402
 
 CASES = [("10k-128", 10_000, 128), ("50k-256", 50_000, 256)]  # (name, Gaussians, size)
@@ -100,12 +99,8 @@ def main() -> None:
               f"{r['visits']:,} visits, {r['pairs_drawn']:,} pairs drawn, "
               f"{r['forward_ns_per_visit']:.1f} / {r['backward_ns_per_visit']:.1f} "
               f"thread-ns a visit")  # fmt: skip
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(json.dumps({
-        "command": " ".join(sys.argv), "commit": source_commit(ROOT), "started": started,
-        "machine": machine_info(args.threads), "threads": args.threads,
-        "sigma_px": args.sigma_px, "tile_size": args.tile_size,
-        "cases": results}, indent=1))  # fmt: skip
+    write_report(args.output, ROOT, args.threads, started=started, threads=args.threads,
+                 sigma_px=args.sigma_px, tile_size=args.tile_size, cases=results)  # fmt: skip
 
 
 if __name__ == "__main__":

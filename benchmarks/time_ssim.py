@@ -14,7 +14,6 @@ and reports the medians, after checking that the two maps agree. It writes the f
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import sys
 import time
@@ -27,7 +26,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from dyngs.losses.photometric import SSIM_WINDOW, ssim_map  # noqa: E402
-from dyngs.tools.common import machine_info, source_commit  # noqa: E402
+from dyngs.tools.common import write_report  # noqa: E402
 
 
 def theirs(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -74,11 +73,7 @@ def main() -> None:
         rows.append(row)
         print(f"{row['height']}×{row['width']}: dyngs {row['dyngs_ms']:.2f} ms, "
               f"kornia {row['kornia_ms']:.2f} ms (forward + backward, medians)")  # fmt: skip
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(json.dumps({
-        "command": " ".join(sys.argv), "commit": source_commit(ROOT),
-        "machine": machine_info(args.threads), "threads": args.threads, "rows": rows,
-    }, indent=1))  # fmt: skip
+    write_report(args.output, ROOT, args.threads, threads=args.threads, rows=rows)
 
 
 if __name__ == "__main__":

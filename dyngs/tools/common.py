@@ -43,9 +43,10 @@ def source_commit(root: Path) -> str:
     return done.stdout.strip()
 
 
-def write_report(output: Path, root: Path, threads: int, **figures: Any) -> None:
+def write_report(output: Path, root: Path, threads: int, /, **figures: Any) -> None:
     """Write a benchmark's `figures` to `output` as JSON, after the command that made them,
-    the commit checked out at `root` and the machine (`machine_info`), and say where."""
+    the commit checked out at `root` and the machine (`machine_info`), and say where.
+    The first three are positional only, so that `figures` may hold a `threads` of its own."""
     report = {
         "command": " ".join(sys.argv),
         "commit": source_commit(root),

@@ -4,13 +4,11 @@ measure, for training steps and for evaluation."""
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
 import pytest
-import torch
 
-from tests.tools.conftest import load_benchmark
+from tests.tools.conftest import load_benchmark, run_benchmark_main
 
 bench = load_benchmark("bench_contribution")
 
@@ -19,13 +17,9 @@ def test_both_renders_are_timed_for_each_run(
     tiny_run: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     output = tmp_path / "contribution.json"
-    argv = ["bench_contribution.py", str(tiny_run), "--repeats", "2", "--views", "2"]
-    monkeypatch.setattr(sys, "argv", [*argv, "--threads", "1", "--output", str(output)])
-    threads = torch.get_num_threads()
-    try:
-        bench.main()
-    finally:
-        torch.set_num_threads(threads)  # the rest of the session keeps its threads
+    argv = [str(tiny_run), "--repeats", "2", "--views", "2", "--threads", "1",
+            "--output", str(output)]  # fmt: skip
+    run_benchmark_main(bench, argv, monkeypatch)
     result = json.loads(output.read_text())
     assert result["machine"]["threads"] == 1
     [row] = result["results"]
