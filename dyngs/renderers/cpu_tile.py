@@ -198,13 +198,14 @@ def project_compiled(
     params = (g.means, g.quats, g.scales, g.opacities, used)
     rows = tuple(_numpy(t).reshape(len(t), math.prod(t.shape[1:])) for t in params)  # N = 0 too
     finite = torch.empty(len(g.means), dtype=torch.bool)
+    scene = np.empty((pk.SCENE_ROWS, len(g.means)))
     dtypes = "/".join(str(t.dtype)[6:] for t in params)  # compiled once for each combination
-    run_kernel(pk.finite_rows, 1, dtypes, rows, finite.numpy())
+    run_kernel(pk.gather_scene, thread_count(threads), dtypes, rows, scene, finite.numpy())
     nonfinite = len(finite) - int(np.count_nonzero(finite.numpy()))
     w2c = camera.world_to_camera.to(dtype=GEOMETRY_DTYPE)
     view = _View(camera, guards, antialiased, finite.numpy(), w2c, thread_count(threads))
-    geometry = (t.to(GEOMETRY_DTYPE) for t in params[:4])
-    means2d, conics, opacities, depths, extents, visible = _Project.apply(*geometry, view)
+    view.scene = scene
+    means2d, conics, opacities, depths, extents, visible = _Project.apply(*params[:4], view)
     # Rows with a non-finite entry are zeroed (their gradients too); most renders have none.
     colors = torch.where(finite.view(-1, *[1] * (used.ndim - 1)), used, 0) if nonfinite else used
     if g.sh_degree is None:
@@ -254,6 +255,8 @@ class _View:
         self.finite = finite
         self.valid: np.ndarray | None = None
         """Rows the forward kept (backward treats the others' det as the constant 1)."""
+        self.scene: np.ndarray = np.empty((0, 0))
+        """The parameters as `project_kernels.gather_scene` lays them out."""
 
     def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(rotation, translation, intrinsics, limits), as `project_kernels` takes them."""
@@ -261,8 +264,10 @@ class _View:
 
 
 class _Project(torch.autograd.Function):
-    """(means, quaternions, scales, opacities), float64 → (2D means, conics, opacities,
-    depths) and the non-differentiable extents and visibility."""
+    """(means, quaternions, scales, opacities) → (2D means, conics, opacities, depths), in
+    float64, and the non-differentiable extents and visibility. The kernels read the
+    parameters from `_View.scene` (float64, gathered from these tensors); the gradients
+    come back in each parameter's dtype."""
 
     @staticmethod
     def forward(  # type: ignore[override]
@@ -271,14 +276,13 @@ class _Project(torch.autograd.Function):
         from dyngs.renderers import project_kernels as pk
 
         n = len(means)
-        inputs = tuple(_numpy(t) for t in (means, quats, scales, opacities))
         out = tuple(np.empty((n, k) if k > 1 else n) for k in pk.OUT_COLUMNS)
         valid, visible = np.empty(n, dtype=np.bool_), np.empty(n, dtype=np.bool_)
-        scene = (*inputs, view.finite)
-        run_kernel(pk.project_forward, view.threads, "float64", scene, view.arrays(),
-                   view.antialiased, out, valid, visible)  # fmt: skip
+        run_kernel(pk.project_forward, view.threads, "float64", view.scene, view.finite,
+                   view.arrays(), view.antialiased, out, valid, visible)  # fmt: skip
         view.valid = valid
-        ctx.view, ctx.inputs = view, inputs
+        ctx.view = view
+        ctx.dtypes = tuple(t.dtype for t in (means, quats, scales, opacities))
         means2d, conics, opacity, depth, extents = (torch.from_numpy(a) for a in out)
         shown = torch.from_numpy(visible)
         ctx.mark_non_differentiable(extents, shown)
@@ -291,17 +295,19 @@ class _Project(torch.autograd.Function):
         from dyngs.renderers import project_kernels as pk
 
         view: _View = ctx.view
-        n = len(ctx.inputs[0])
-        upstream = np.zeros((n, 7))
-        for grad, (lo, hi) in zip(grads[:4], ((0, 2), (2, 5), (5, 6), (6, 7)), strict=True):
-            if grad is not None:
-                upstream[:, lo:hi] = grad.detach().to(GEOMETRY_DTYPE).reshape(n, hi - lo).numpy()
-        out = np.empty((n, pk.GRAD_COLUMNS))
-        scene, valid = (*ctx.inputs, view.finite), view.valid
-        run_kernel(pk.project_backward, view.threads, "float64", scene, view.arrays(), valid,
-                   view.antialiased, upstream, out)  # fmt: skip
-        result = torch.from_numpy(out)
-        return result[:, 0:3], result[:, 3:7], result[:, 7:10], result[:, 10], None
+        n = view.scene.shape[1]
+        shapes = [(n, k) if k > 1 else (n,) for k in pk.OUT_COLUMNS[:4]]
+        upstream = tuple(
+            np.zeros(shape) if grad is None else _numpy(grad.to(GEOMETRY_DTYPE).reshape(shape))
+            for grad, shape in zip(grads[:4], shapes, strict=True)
+        )
+        result = tuple(torch.empty(shape, dtype=dtype) for shape, dtype in
+                       zip(((n, 3), (n, 4), (n, 3), (n,)), ctx.dtypes, strict=True))  # fmt: skip
+        signature = "/".join(str(d)[6:] for d in ctx.dtypes)
+        run_kernel(pk.project_backward, view.threads, signature, view.scene, view.finite,
+                   view.arrays(), view.valid, view.antialiased, upstream,
+                   tuple(t.numpy() for t in result))  # fmt: skip
+        return (*result, None)
 
 
 def bin_tiles_compiled(

@@ -403,13 +403,13 @@ def test_compiled_binning_keeps_index_order_among_equal_depths() -> None:
         assert torch.equal(getattr(got, name), getattr(want, name)), name
 
 
+@pytest.mark.parametrize("n", [500, 1000])  # 1000: chunks of the kernel's size and a rest
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_compiled_finiteness_check_is_ops_finite_rows(dtype: torch.dtype) -> None:
+def test_gathered_scene_is_the_finite_rows_laid_out_by_column(dtype: torch.dtype, n: int) -> None:
     from dyngs.ops import finite_rows
     from dyngs.renderers import project_kernels
 
     gen = torch.Generator().manual_seed(3)
-    n = 500
     tensors = [torch.randn(n, *shape, generator=gen, dtype=dtype)
                for shape in ((3,), (4,), (3,), (), (16, 3))]  # fmt: skip
     for t in tensors:  # a few NaN and ±Inf entries, anywhere in a row
@@ -422,7 +422,12 @@ def test_compiled_finiteness_check_is_ops_finite_rows(dtype: torch.dtype) -> Non
     want = finite_rows(*tensors)
     assert 0 < int(want.sum()) < n
     got = np.empty(n, dtype=np.bool_)
-    project_kernels.finite_rows(tuple(t.reshape(n, -1).numpy() for t in tensors), got)
+    scene = np.full((project_kernels.SCENE_ROWS, n), np.nan)
+    arrays = tuple(t.reshape(n, -1).numpy() for t in tensors)
+    project_kernels.gather_scene(arrays, scene, got)
     assert torch.equal(torch.from_numpy(got), want)
+    columns = torch.cat([t.reshape(n, -1) for t in tensors[:4]], 1).double()
+    assert torch.equal(torch.from_numpy(scene).T, torch.where(want[:, None], columns, 0.0))
     none = np.empty(0, dtype=np.bool_)
-    project_kernels.finite_rows(tuple(t[:0].reshape(0, 1).numpy() for t in tensors), none)
+    empty = tuple(a[:0] for a in arrays)
+    project_kernels.gather_scene(empty, np.empty((project_kernels.SCENE_ROWS, 0)), none)
