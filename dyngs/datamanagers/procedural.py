@@ -79,6 +79,10 @@ class ProceduralSceneConfig:
     """Validation views, drawn like the test views (0: the parser falls back to test)."""
     motion: bool = True
     """False: every object stays at its t = 0 pose (a static scene seen over time)."""
+    motion_start: float = 0.0
+    """Time until which every object holds its t = 0 pose; from it to t = 1 the moving
+    objects go through their whole motion, faster (a capture that starts before the
+    action: what has not moved yet is not necessarily static)."""
     fixed_cameras: int = 0
     """> 0: the train views come from this many cameras that never move, each seeing every
     timestamp (a multi-view rig, like Panoptic or DyNeRF); 0: `views_per_time` cameras at
@@ -91,6 +95,8 @@ class ProceduralSceneConfig:
             raise ValueError(f"resolution must be ≥ 8, got {self.resolution}")
         if self.num_times < 1 or self.views_per_time < 1 or self.num_test < 1:
             raise ValueError("num_times, views_per_time and num_test must be ≥ 1")
+        if not 0.0 <= self.motion_start < 1.0:
+            raise ValueError(f"motion_start must be in [0, 1), got {self.motion_start}")
         if self.num_val < 0:
             raise ValueError(f"num_val must be ≥ 0, got {self.num_val}")
         if self.fixed_cameras < 0:
@@ -233,7 +239,8 @@ def _still_objects() -> list[SceneObject]:
 def scene_objects(config: ProceduralSceneConfig, t: float) -> list[SceneObject]:
     """The scene's primitives at time t ∈ [0, 1]."""
     moving = config.motion
-    t = t if moving else 0.0
+    start = config.motion_start
+    t = max(0.0, (t - start) / (1.0 - start)) if moving else 0.0
     phase = 2 * math.pi * t
     ball_center = np.array(
         [
@@ -514,8 +521,13 @@ def cache_dir() -> Path:
 
 
 def config_key(config: ProceduralSceneConfig) -> str:
-    """A short hash of the config and the generator version."""
-    text = json.dumps({"version": GENERATOR_VERSION, **asdict(config)}, sort_keys=True)
+    """A short hash of the config and the generator version. A field added after the
+    first version counts only where it is not its default, so that adding one leaves the
+    scenes already in the cache where they are."""
+    fields = asdict(config)
+    if fields["motion_start"] == 0.0:
+        del fields["motion_start"]
+    text = json.dumps({"version": GENERATOR_VERSION, **fields}, sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()[:10]
 
 
