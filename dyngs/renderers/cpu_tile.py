@@ -114,8 +114,9 @@ class CpuTileRenderer:
         features = torch.cat((screen.colors, screen.depths.to(screen.colors.dtype)[:, None]), 1)
         log_opacity = screen.opacities.clamp_min(1e-30).log()
         absgrad = torch.zeros(len(features), 2, dtype=torch.float64)
-        plan = _Plan(bins, size, self.guards, self.config.threads, contribution, absgrad=absgrad)
         inputs = (screen.means2d, screen.conics, log_opacity, features)
+        backward = torch.is_grad_enabled() and any(t.requires_grad for t in inputs)
+        plan = _Plan(bins, size, self.guards, self.config.threads, contribution, backward, absgrad)
         sums, per_pair = _Composite.apply(*inputs, plan)
         self.last_work = plan.work
         rgb, alpha, depth = finish_image(sums, background)
@@ -152,11 +153,14 @@ class _Plan:
     guards: Guards
     threads: int | None
     contribution: bool
-    work: np.ndarray | None = None
-    """After the forward: per busy tile, the pixel visits and the pairs drawn."""
+    backward: bool
+    """Whether a backward may follow: without one, the forward keeps no per-pixel state
+    for it (at 800², 10 MB of transmittance and last-pair indices)."""
     absgrad: Tensor | None = None
     """When given, the backward fills it with Σ over pixels of |∂L/∂means2d| per axis
     (`RenderOutput.means2d_absgrad`)."""
+    work: np.ndarray | None = None
+    """After the forward: per busy tile, the pixel visits and the pairs drawn."""
 
     def tile_order(self) -> np.ndarray:
         """The tiles with any Gaussian, busiest first (by Gaussian count): dealt to the
@@ -368,8 +372,9 @@ class _Composite(torch.autograd.Function):
         )
         order = plan.tile_order()
         sums = np.zeros((height, width, 5), dtype=scene[3].dtype)
-        transmittance = np.ones((height, width))
-        last = np.full((height, width), -1, dtype=np.int64)
+        state = (height, width) if plan.backward else (0, 0)
+        transmittance = np.ones(state)
+        last = np.full(state, -1, dtype=np.int64)
         per_pair = np.zeros(len(scene[4]) if plan.contribution else 0)
         plan.work = np.zeros((len(order), 2), dtype=np.int64)
         _launch(tile_kernels.composite_forward, plan.threads, scene, order, plan.layout(),

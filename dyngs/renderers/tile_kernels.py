@@ -251,7 +251,8 @@ def composite_forward(
 
     Writes, for every pixel of those tiles, sums [H, W, 5] (Σ w·(r, g, b, depth, 1), in
     the compositing dtype), transmittance [H, W] (float64, after the last pair drawn) and
-    last [H, W] (that pair's position in its tile's list, −1 for none); and, when
+    last [H, W] (that pair's position in its tile's list, −1 for none), unless both are
+    empty (a render no backward will follow); and, when
     `contribution` has M entries, each pair's Σ w over its tile's pixels. work[i] counts
     tile_order[i]'s lanes (the cells its Gaussians' rows and blocks cover, each evaluated
     whether or not it is inside the ellipse) and the pairs it drew.
@@ -293,13 +294,15 @@ def _forward_tile(
     box = (x0, y0, x1, y1)
     lanes, pairs = _forward_list(scene, tile, box, limits, centres, running, acc, taken,
                                  weights, contribution)  # fmt: skip
+    keep = transmittance.shape[0] > 0  # the state backward needs, when it will run
     for r in range(rows):
         for i in range(width):
             p = _cell(r, i, rows)
             for j in range(5):
                 sums[y0 + r, x0 + i, j] = acc[j][p]
-            transmittance[y0 + r, x0 + i] = abs(running[p])
-            last[y0 + r, x0 + i] = taken[p]
+            if keep:
+                transmittance[y0 + r, x0 + i] = abs(running[p])
+                last[y0 + r, x0 + i] = taken[p]
     return lanes, pairs
 
 

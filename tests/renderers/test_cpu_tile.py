@@ -128,7 +128,7 @@ def test_gradcheck_of_the_compiled_compositing() -> None:
     screen = project(gaussians, camera, Guards())
     size = (camera.width, camera.height, 8)
     bins = bin_tiles(screen, *size)
-    plan = cpu_tile._Plan(bins, size, Guards(), None, False)
+    plan = cpu_tile._Plan(bins, size, Guards(), None, False, True)
     features = torch.cat((screen.colors, screen.depths[:, None]), 1)
 
     def sums(means2d: Tensor, conics: Tensor, log_opacity: Tensor, feats: Tensor) -> Tensor:
@@ -139,6 +139,31 @@ def test_gradcheck_of_the_compiled_compositing() -> None:
         for t in (screen.means2d, screen.conics, screen.opacities.log(), features)
     )
     assert torch.autograd.gradcheck(sums, inputs, eps=1e-6, atol=1e-6, rtol=1e-4)
+
+
+def test_a_render_without_gradients_keeps_no_backward_state_and_draws_the_same(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    gaussians, camera, background = random_scene(6, 1500, 77, 53, torch.float32, 2)
+    renderer = CpuTileConfig().build()
+    kept: list[tuple[int, ...]] = []
+    launch = cpu_tile._launch
+
+    def spy(kernel: Any, threads: int | None, *args: Any) -> None:
+        if kernel.__name__ == "composite_forward":
+            kept.append(args[5].shape)  # the per-pixel transmittance kept for backward
+        launch(kernel, threads, *args)
+
+    monkeypatch.setattr(cpu_tile, "_launch", spy)
+    leaves = {name: getattr(gaussians, name).clone().requires_grad_(True) for name in PARAMS}
+    with_grad = renderer(Gaussians(**leaves, sh_degree=2), camera, background, contribution=True)
+    with torch.no_grad():
+        without = renderer(Gaussians(**leaves, sh_degree=2), camera, background, contribution=True)
+    still = renderer(gaussians, camera, background, contribution=True)  # nothing requires grad
+    assert kept == [(camera.height, camera.width), (0, 0), (0, 0)]
+    for out in (without, still):
+        for name in ("rgb", "alpha", "depth", "contribution"):
+            assert torch.equal(getattr(out, name), getattr(with_grad, name).detach()), name
 
 
 def test_the_same_render_on_every_run_and_thread_count() -> None:
