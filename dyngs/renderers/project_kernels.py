@@ -1,5 +1,5 @@
 """The compiled projection of `cpu-tile` (numba): `stages.project`'s geometry, forward and
-backward, eight Gaussians to a vector instruction.
+backward, in one pass over the Gaussians each.
 
 `stages.project` is the specification: EWA splatting (Zwicker et al. 2001) as 3DGS uses
 it (Kerbl et al. 2023), in float64, with its guards (docs/RENDERER.md): non-finite rows
@@ -10,9 +10,10 @@ are some sixty whole-array operations forward and as many backward, each a pass 
 memory and a dispatch; here they are one pass, and backward is the chain rule written out
 (the 3DGS backward kernels' order: conic, then 2D covariance, then 3D covariance and
 quaternion, then the mean). The parameters are first laid out by column
-(`gather_scene`), and each Gaussian's code is straight-line, every guard a select, so that
-LLVM vectorises the loops across Gaussians; each result is the one the scalar code gives,
-operation for operation (no reassociation, no fused multiply-adds).
+(`gather_scene`), each Gaussian's code is straight-line, every guard a select, and a
+division is IEEE's (numba's `error_model="numpy"`; its default tests every divisor for
+zero and branches to raise, which alone made these loops ~2.5× slower); each result is
+the one the branching code gave, operation for operation.
 tests/renderers/test_cpu_tile.py holds both directions to the PyTorch stage on random
 scenes and every hard case, and gradcheck in float64.
 
@@ -32,8 +33,8 @@ _NOALIAS = noalias_option()
 
 SCENE_ROWS = 11
 """Rows of the scene as the kernels read it (`gather_scene`): mean x, y, z, quaternion w,
-x, y, z, scale x, y, z, opacity. One row per column, Gaussians along each, so that the
-per-Gaussian loops run eight Gaussians to an instruction."""
+x, y, z, scale x, y, z, opacity. One row per column, Gaussians along each: read in
+sequence, where the tensors' [N, k] rows have strides numba learns only at run time."""
 
 OUT_COLUMNS = (2, 3, 1, 1, 2)
 """Columns of the forward's float64 outputs, one array each (so that each can be handed
@@ -260,10 +261,11 @@ def _forward_range(
         valid[i], visible[i] = good[j], shown[j]
 
 
-# Each Gaussian's code is straight-line (every guard a select) over rows of the scene, so
-# that LLVM vectorises the loop across Gaussians; `noalias` tells it the output lanes do
-# not overlap the inputs, which it would otherwise check for every pair of arrays (too
-# many checks: it gives up and runs the loop one Gaussian at a time, ~6× slower).
+# Straight-line code per Gaussian (every guard a select), IEEE division and `noalias`
+# output lanes (no overlap checks between a dozen arrays). LLVM still runs it one Gaussian
+# at a time, because the loop reads the camera from its arrays in every iteration; with
+# the camera hoisted into tuples of floats it vectorises (eight lanes of AVX-512), but that
+# measured no faster on a demo frame or at 200 000 Gaussians, so it stays the simpler way.
 @njit(cache=True, nogil=True, error_model="numpy", **_NOALIAS)
 def _forward_lanes(
     first: int,
