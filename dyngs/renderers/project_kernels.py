@@ -229,7 +229,7 @@ def project_forward(
     absolute)."""
     n = finite.shape[0]
     for chunk in prange(-(-n // CHUNK)):
-        _forward_range(_span(chunk, n), scene, finite, view, antialiased, out, valid, visible)
+        _forward_range(_span(chunk, n), scene, finite, view, antialiased, (out, valid, visible))
 
 
 @njit(cache=True, nogil=True)
@@ -239,12 +239,11 @@ def _forward_range(
     finite: np.ndarray,
     view: tuple,
     antialiased: bool,
-    out: tuple,
-    valid: np.ndarray,
-    visible: np.ndarray,
+    outputs: tuple,
 ) -> None:  # pragma: no cover - compiled
-    """Gaussians [span[0], span[1]) of `project_forward`: every Gaussian at once in
-    `_forward_lanes`, then its results written out row by row."""
+    """Gaussians [span[0], span[1]) of `project_forward` (outputs: out, valid, visible):
+    their arithmetic in `_forward_lanes`, then its results written out row by row."""
+    out, valid, visible = outputs
     first, end = span
     k = end - first
     lanes = (np.empty(k), np.empty(k), np.empty(k), np.empty(k), np.empty(k), np.empty(k),
@@ -340,23 +339,18 @@ def project_backward(
     zeros, as the zeroed parameters of `stages.prepare` give them."""
     n = finite.shape[0]
     for chunk in prange(-(-n // CHUNK)):
-        _backward_range(_span(chunk, n), scene, finite, view, valid, antialiased, upstream,
-                        grads)  # fmt: skip
+        _backward_range(_span(chunk, n), scene, finite, view,
+                        (valid, antialiased, upstream, grads))  # fmt: skip
 
 
 @njit(cache=True, nogil=True)
 def _backward_range(
-    span: tuple,
-    scene: np.ndarray,
-    finite: np.ndarray,
-    view: tuple,
-    valid: np.ndarray,
-    antialiased: bool,
-    upstream: tuple,
-    grads: tuple,
+    span: tuple, scene: np.ndarray, finite: np.ndarray, view: tuple, rest: tuple
 ) -> None:  # pragma: no cover - compiled
-    """Gaussians [span[0], span[1]) of `project_backward`: the upstream gradients laid out
-    as lanes, every Gaussian at once in `_backward_lanes`, the results written out."""
+    """Gaussians [span[0], span[1]) of `project_backward` (rest: its valid rows,
+    antialiasing, upstream and grads): the upstream gradients laid out as lanes, the
+    Gaussians' arithmetic in `_backward_lanes`, the results written out."""
+    valid, antialiased, upstream, grads = rest
     first, end = span
     k = end - first
     g_means2d, g_conics, g_opacity, g_depth = upstream
