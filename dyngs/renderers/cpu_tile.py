@@ -207,8 +207,7 @@ def project_compiled(
     run_kernel(pk.gather_scene, thread_count(threads), dtypes, rows, scene, finite.numpy())
     nonfinite = len(finite) - int(np.count_nonzero(finite.numpy()))
     w2c = camera.world_to_camera.to(dtype=GEOMETRY_DTYPE)
-    view = _View(camera, guards, antialiased, finite.numpy(), w2c, thread_count(threads))
-    view.scene = scene
+    view = _View(camera, guards, antialiased, scene, finite.numpy(), w2c, thread_count(threads))
     means2d, conics, opacities, depths, extents, visible = _Project.apply(*params[:4], view)
     # Rows with a non-finite entry are zeroed (their gradients too); most renders have none.
     colors = torch.where(finite.view(-1, *[1] * (used.ndim - 1)), used, 0) if nonfinite else used
@@ -238,6 +237,7 @@ class _View:
         camera: Camera,
         guards: Guards,
         antialiased: bool,
+        scene: np.ndarray,
         finite: np.ndarray,
         w2c: Tensor,
         threads: int,
@@ -256,11 +256,11 @@ class _View:
              _EXTENT_RELATIVE_MARGIN, _EXTENT_ABSOLUTE_MARGIN], dtype=np.float64,
         )  # fmt: skip
         self.antialiased = antialiased
+        self.scene = scene
+        """The parameters as `project_kernels.gather_scene` laid them out."""
         self.finite = finite
         self.valid: np.ndarray | None = None
         """Rows the forward kept (backward treats the others' det as the constant 1)."""
-        self.scene: np.ndarray = np.empty((0, 0))
-        """The parameters as `project_kernels.gather_scene` lays them out."""
 
     def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(rotation, translation, intrinsics, limits), as `project_kernels` takes them."""

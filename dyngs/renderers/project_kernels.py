@@ -170,10 +170,12 @@ def gather_scene(arrays: tuple, scene: np.ndarray, finite: np.ndarray) -> None: 
 
 
 @njit(cache=True, nogil=True)
-def _gather_range(span: tuple, arrays: tuple, scene: np.ndarray, finite: np.ndarray) -> None:
+def _gather_range(
+    span: tuple, arrays: tuple, scene: np.ndarray, finite: np.ndarray
+) -> None:  # pragma: no cover - compiled
     """Rows [span[0], span[1]) of `gather_scene`: the check row by row, then the copy
     column by column (each a sequential write; row by row, eleven streams at once, it was
-    four times slower)."""  # pragma: no cover - compiled
+    four times slower)."""
     means, quats, scales, opacities, colors = arrays
     first, end = span
     bad = 0
@@ -242,7 +244,9 @@ def _forward_range(
     outputs: tuple,
 ) -> None:  # pragma: no cover - compiled
     """Gaussians [span[0], span[1]) of `project_forward` (outputs: out, valid, visible):
-    their arithmetic in `_forward_lanes`, then its results written out row by row."""
+    their arithmetic in `_forward_lanes`, into one array per quantity, then written out
+    row by row. Written straight into the [N, k] outputs, the same arithmetic took 2.4×
+    as long (a demo frame; 1.7× at 200 000 Gaussians), and so did the backward's."""
     out, valid, visible = outputs
     first, end = span
     k = end - first
