@@ -520,13 +520,20 @@ def cache_dir() -> Path:
     return Path(os.environ.get("DYNGS_CACHE") or Path.home() / ".cache" / "dyngs")
 
 
+ADDED_FIELDS = ("motion_start",)
+"""Config fields added after the first version: each counts in `config_key` only where it
+is not its default, so that adding one leaves the scenes already in the cache where they
+are."""
+
+
 def config_key(config: ProceduralSceneConfig) -> str:
-    """A short hash of the config and the generator version. A field added after the
-    first version counts only where it is not its default, so that adding one leaves the
-    scenes already in the cache where they are."""
-    fields = asdict(config)
-    if fields["motion_start"] == 0.0:
-        del fields["motion_start"]
+    """A short hash of the config and the generator version (see `ADDED_FIELDS`)."""
+    default = ProceduralSceneConfig()
+    fields = {
+        name: value
+        for name, value in asdict(config).items()
+        if name not in ADDED_FIELDS or value != getattr(default, name)
+    }
     text = json.dumps({"version": GENERATOR_VERSION, **fields}, sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()[:10]
 
