@@ -19,6 +19,8 @@ Letters: N Gaussians, M tile–Gaussian pairs, H×W image.
 from __future__ import annotations
 
 import math
+import threading
+import weakref
 from dataclasses import dataclass
 from typing import Any
 
@@ -178,6 +180,53 @@ class _Plan:
         """(α floor, α ceiling, transmittance floor), as the kernels take them."""
         g = self.guards
         return g.alpha_min, g.alpha_max, g.transmittance_min
+
+
+class _AlphaStore:
+    """The arrays the forward keeps each pair's α in for the backward (`tile_kernels`'
+    `kept`), one row per thread, reused from render to render.
+
+    A row must hold the most its tiles could keep, a whole tile's cells for every pair,
+    of which a render writes only a fraction, at the row's end (`tile_kernels`' `kept`).
+    Such an array is virtual memory until written, its pages backed one fault at a time
+    as they are; allocated afresh for every render, those faults cost more than the kept
+    α save (docs/RENDERER.md). Reused, the pages a render writes are already there: the
+    memory held is what the largest renders wrote, in up to `KEEP` arrays. A render's
+    array is back in the store once its autograd graph is freed (for a training step,
+    during the next step's forward), not before: a graph kept for a second backward
+    keeps its own."""
+
+    KEEP = 2
+
+    def __init__(self) -> None:
+        self._free: list[np.ndarray] = []
+        self._lock = threading.Lock()
+
+    def take(self, plan: _Plan, order: np.ndarray, dtype: np.dtype) -> np.ndarray:
+        """An array [threads, capacity] for a render of `plan`; empty when no backward
+        will follow."""
+        from dyngs.renderers import tile_kernels
+
+        threads = thread_count(plan.threads)
+        if not plan.backward:
+            return np.empty((1, 0), dtype=dtype)
+        counts = plan.bins.tile_count.numpy()[order]
+        most = max(int(counts[j::threads].sum()) for j in range(threads))
+        cells = max(most * tile_kernels.tile_cells(plan.size[2]), 1)
+        with self._lock:
+            for i, array in enumerate(self._free):
+                if array.dtype == dtype and array.shape[0] == threads and array.shape[1] >= cells:
+                    return self._free.pop(i)
+        return np.empty((threads, 1 << (cells - 1).bit_length()), dtype=dtype)
+
+    def give(self, array: np.ndarray) -> None:
+        """Take `array` back for later renders, keeping the `KEEP` latest."""
+        with self._lock:
+            self._free.append(array)
+            del self._free[: -self.KEEP]
+
+
+_ALPHAS = _AlphaStore()
 
 
 def _launch(kernel: Any, threads: int | None, *args: Any) -> None:
@@ -375,12 +424,17 @@ class _Composite(torch.autograd.Function):
         state = (height, width) if plan.backward else (0, 0)
         transmittance = np.ones(state)
         last = np.full(state, -1, dtype=np.int64)
+        alphas = _ALPHAS.take(plan, order, scene[3].dtype)
+        kept = (transmittance, last, alphas, np.empty(len(scene[4]) if plan.backward else 0,
+                                                     dtype=np.int64))  # fmt: skip
         per_pair = np.zeros(len(scene[4]) if plan.contribution else 0)
         plan.work = np.zeros((len(order), 2), dtype=np.int64)
         _launch(tile_kernels.composite_forward, plan.threads, scene, order, plan.layout(),
-                plan.limits(), sums, transmittance, last, per_pair, plan.work)  # fmt: skip
+                plan.limits(), sums, kept, per_pair, plan.work)  # fmt: skip
         ctx.plan = plan
-        ctx.state = (scene, order, transmittance, last)
+        ctx.state = (scene, order, kept)
+        if alphas.size:  # back to the store when the graph (and with it ctx) is freed
+            weakref.finalize(ctx, _ALPHAS.give, alphas)
         contribution = torch.from_numpy(per_pair)
         ctx.mark_non_differentiable(contribution)
         return torch.from_numpy(sums), contribution
@@ -392,11 +446,11 @@ class _Composite(torch.autograd.Function):
         from dyngs.renderers import tile_kernels
 
         plan: _Plan = ctx.plan
-        scene, order, transmittance, last = ctx.state
+        scene, order, kept = ctx.state
         pair_grads = np.empty((len(scene[4]), tile_kernels.PAIR_GRADS))
         upstream = _numpy(grad_sums)  # the kernel widens it to float64 as it reads it
         _launch(tile_kernels.composite_backward, plan.threads, scene, order, plan.layout(),
-                plan.limits(), upstream, transmittance, last, pair_grads)  # fmt: skip
+                plan.limits(), upstream, kept, pair_grads)  # fmt: skip
         grads = torch.from_numpy(_per_gaussian(plan.bins, pair_grads, len(scene[0])))
         if plan.absgrad is not None:
             plan.absgrad.copy_(grads[:, 10:12])

@@ -31,10 +31,13 @@ may differ in the last bit, and a pair is decided differently only if its α or
 transmittance lies within that bit of a threshold. In float64 it is libm's `exp`.
 
 Forward keeps what backward needs: each pixel's final transmittance (float64) and the
-position of the last pair it drew. Backward walks each pixel's pairs back to front,
-recovering the transmittance before each pair by dividing by its (1 − α) (≥ 0.01, since
-α ≤ 0.99), as the 3DGS kernels do (Kerbl et al. 2023). Per-pair gradients are written to
-a [M, 12] array that one serial pass then sums per Gaussian in a fixed order, so a render
+position of the last pair it drew, as the 3DGS kernels do (Kerbl et al. 2023), and the
+unclamped α of every cell each pair ran (in the compositing dtype), so that backward reads
+the exponentials back instead of evaluating them again (docs/RENDERER.md measures the
+trade: backward more than twice as fast, forward somewhat slower for the writes). Backward
+walks each pixel's pairs back to front, recovering the transmittance before each pair by
+dividing by its (1 − α) (≥ 0.01, since α ≤ 0.99). Per-pair gradients are written to a
+[M, 12] array that one serial pass then sums per Gaussian in a fixed order, so a render
 and its gradients are the same on every run whatever the thread schedule.
 """
 
@@ -80,6 +83,14 @@ LANES = 8
 columns wide (8 float64 lanes fill one AVX-512 register), and within a block row by row,
 so the cells of a Gaussian's rows within one block are one contiguous run (`_cell`).
 Columns past the image in the last block are padding, stopped from the start."""
+
+
+@njit(cache=True, nogil=True)
+def tile_cells(size: int) -> int:  # pragma: no cover - compiled (also called from Python)
+    """The cells of a whole tile of `size`² pixels, padding included: the most α any one
+    pair keeps for backward (`kept`, below)."""
+    return -(-size // LANES) * LANES * size
+
 
 _LN2_HI = 0.6931471803691238  # ln 2 in two parts (Cody and Waite 1980): n·_LN2_HI is exact
 _LN2_LO = 1.9082149292705877e-10
@@ -166,6 +177,15 @@ def _reach(
 #             gaussian [M], tile_start [T], tile_count [T])
 #   layout = (tiles_x, tile_size, width, height)
 #   limits = (alpha_min, alpha_max, transmittance_min)
+#   kept   = (transmittance [H, W], last [H, W], alphas [threads, A], offsets [M]): what
+#            forward keeps for backward, all empty when no backward will follow. The α of
+#            pair m over the cells it ran, block by block, row by row, are
+#            alphas[j, offsets[m]:], j the thread that composited its tile (both kernels
+#            deal tiles to threads alike). Each thread fills its row downwards from the end,
+#            pair after pair: so backward, taking a tile's pairs back to front, reads them
+#            in ascending order, which the hardware prefetches (front to back, backward was
+#            no faster for them wherever they outgrew the caches), and what a render writes
+#            is always the end of the row (`cpu_tile._AlphaStore` reuses the arrays).
 # means2d, conics (a, b, c of Q = Σ⁻¹) and ln opacity are float64; features (r, g, b,
 # depth) are in the compositing dtype, which every decision is made in.
 #
@@ -241,8 +261,7 @@ def composite_forward(
     layout: tuple,
     limits: tuple,
     sums: np.ndarray,
-    transmittance: np.ndarray,
-    last: np.ndarray,
+    kept: tuple,
     contribution: np.ndarray,
     work: np.ndarray,
     threads: int,
@@ -258,9 +277,10 @@ def composite_forward(
     whether or not it is inside the ellipse) and the pairs it drew.
     """
     for thread in prange(threads):
+        stored = kept[2].shape[1]  # where the α this thread's row holds start
         for i in range(thread, tile_order.shape[0], threads):
-            lanes, drawn = _forward_tile(scene, tile_order[i], layout, limits, sums,
-                                         transmittance, last, contribution)  # fmt: skip
+            lanes, drawn, stored = _forward_tile(scene, tile_order[i], layout, limits, sums,
+                                                 kept, contribution, thread, stored)  # fmt: skip
             work[i, 0] = lanes
             work[i, 1] = drawn
 
@@ -272,12 +292,14 @@ def _forward_tile(
     layout: tuple,
     limits: tuple,
     sums: np.ndarray,
-    transmittance: np.ndarray,
-    last: np.ndarray,
+    kept: tuple,
     contribution: np.ndarray,
-) -> tuple[int, int]:  # pragma: no cover - compiled
+    thread: int,
+    stored: int,
+) -> tuple[int, int, int]:  # pragma: no cover - compiled
     """One tile of `composite_forward`: its Gaussians front to back, until every pixel
-    has stopped. Returns the lanes run and pairs drawn."""
+    has stopped, their α kept in alphas[thread] below `stored`. Returns the lanes run,
+    the pairs drawn and where the α the thread's row holds now start."""
     x0, y0, x1, y1 = _tile_box(tile, layout)
     width, rows = x1 - x0, y1 - y0
     centres = _centres(x0, y0, width, rows)
@@ -292,9 +314,12 @@ def _forward_tile(
     taken = np.full(cells, -1, dtype=np.int64)
     weights = np.zeros(cells)  # w of the current pair, per cell
     box = (x0, y0, x1, y1)
-    lanes, pairs = _forward_list(scene, tile, box, limits, centres, running, acc, taken,
-                                 weights, contribution)  # fmt: skip
+    transmittance, last, alphas, offsets = kept
     keep = transmittance.shape[0] > 0  # the state backward needs, when it will run
+    lanes, pairs, stored = _forward_list(scene, tile, box, limits, centres, running, acc,
+                                         taken, weights, contribution,
+                                         alphas[thread] if keep else alphas[0], offsets,
+                                         stored)  # fmt: skip
     for r in range(rows):
         for i in range(width):
             p = _cell(r, i, rows)
@@ -303,7 +328,7 @@ def _forward_tile(
             if keep:
                 transmittance[y0 + r, x0 + i] = abs(running[p])
                 last[y0 + r, x0 + i] = taken[p]
-    return lanes, pairs
+    return lanes, pairs, stored
 
 
 # One call a tile, with the tile's pixel state as arguments: `noalias` tells LLVM that
@@ -322,28 +347,38 @@ def _forward_list(
     taken: np.ndarray,
     weights: np.ndarray,
     contribution: np.ndarray,
-) -> tuple[int, int]:  # pragma: no cover - compiled
-    """The tile's Gaussians front to back, until every pixel has stopped: the lanes run
-    and pairs drawn."""
+    alphas: np.ndarray,
+    offsets: np.ndarray,
+    stored: int,
+) -> tuple[int, int, int]:  # pragma: no cover - compiled
+    """The tile's Gaussians front to back, until every pixel has stopped, each one's α
+    kept in `alphas` just below the one before, from `stored` down: the lanes run, pairs
+    drawn and where the kept α now start."""
     gaussian, tile_start, tile_count = scene[4], scene[5], scene[6]
     x0, y0, x1, y1 = box
     log_alpha_min = math.log(limits[0])
     active = (y1 - y0) * (x1 - x0)
     lanes = pairs = 0
     start = tile_start[tile]
+    keep = offsets.shape[0] > 0
     for k in range(tile_count[tile]):
         if active == 0:
             break
+        g = gaussian[start + k]
+        foot = _footprint(scene, g, box, log_alpha_min)
+        if keep:
+            stored -= max(foot[7] + 1 - foot[6], 0) * LANES * max(foot[9] + 1 - foot[8], 0)
+            offsets[start + k] = stored
         drawn, stopped, ran, took = _forward_gaussian(
-            scene, gaussian[start + k], k, box, limits, log_alpha_min, centres, running,
-            acc, taken, weights, contribution.shape[0] > 0,
+            scene, g, k, foot, box, limits, centres, running, acc, taken, weights,
+            contribution.shape[0] > 0, alphas, stored if keep else -1,
         )  # fmt: skip
         active -= stopped
         lanes += ran
         pairs += took
         if contribution.shape[0] > 0:
             contribution[start + k] = drawn
-    return lanes, pairs
+    return lanes, pairs, stored
 
 
 # Inlined: a call would pass a dozen arrays, and numba counts references on each of them,
@@ -353,17 +388,21 @@ def _forward_gaussian(
     scene: tuple,
     g: int,
     k: int,
+    foot: tuple,
     box: tuple,
     limits: tuple,
-    log_alpha_min: float,
     centres: tuple,
     running: np.ndarray,
     acc: tuple,
     taken: np.ndarray,
     weights: np.ndarray,
     measure: bool,
+    alphas: np.ndarray,
+    stored: int,
 ) -> tuple[float, int, int, int]:  # pragma: no cover - compiled
-    """Draw Gaussian `g` (position `k` in the tile's list) into the tile's pixel state.
+    """Draw Gaussian `g` (position `k` in the tile's list; `foot` its `_footprint`) into
+    the tile's pixel state, and each cell's unclamped α into `alphas` from `stored` on
+    (unless it is negative).
     Returns Σ w over the pixels it drew (when `measure`), how many pixels stopped at it,
     how many cells it ran and how many pixels it drew.
 
@@ -374,7 +413,7 @@ def _forward_gaussian(
     features = scratch = scene[3]  # scratch: the dtype to round to
     a_min, a_max, t_min = _thresholds(scratch, limits)
     zero = _to_dtype(scratch, 0.0)
-    mx, my, lo, a, b, c, r0, r1, b0, b1 = _footprint(scene, g, box, log_alpha_min)
+    mx, my, lo, a, b, c, r0, r1, b0, b1 = foot
     f0, f1, f2, f3 = features[g, 0], features[g, 1], features[g, 2], features[g, 3]
     acc0, acc1, acc2, acc3, acc4 = acc
     xs, ys = centres
@@ -384,9 +423,13 @@ def _forward_gaussian(
     stopped = pairs = 0
     for block in range(b0, b1 + 1):
         first = block * column_cells + r0 * LANES
+        here = stored + (block - b0) * run
         for j in range(run):
             p = np.uint64(first + j)
-            alpha = min(_exp(scratch, _exponent(lo, a, b, c, xs[p] - mx, ys[p] - my)), a_max)
+            raw = _exp(scratch, _exponent(lo, a, b, c, xs[p] - mx, ys[p] - my))
+            if stored >= 0:
+                alphas[np.uint64(here + j)] = raw
+            alpha = min(raw, a_max)
             t = running[p]
             live = (t > 0.0) & (alpha >= a_min)
             after = t * _to_dtype(scratch, 1.0 - alpha)
@@ -416,8 +459,7 @@ def composite_backward(
     layout: tuple,
     limits: tuple,
     grad_sums: np.ndarray,
-    transmittance: np.ndarray,
-    last: np.ndarray,
+    kept: tuple,
     pair_grads: np.ndarray,
     threads: int,
 ) -> None:  # pragma: no cover - compiled
@@ -433,8 +475,8 @@ def composite_backward(
     """
     for thread in prange(threads):
         for i in range(thread, tile_order.shape[0], threads):
-            _backward_tile(scene, tile_order[i], layout, limits, grad_sums, transmittance,
-                           last, pair_grads)  # fmt: skip
+            _backward_tile(scene, tile_order[i], layout, limits, grad_sums, kept,
+                           pair_grads, thread)  # fmt: skip
 
 
 @njit(cache=True, nogil=True)
@@ -444,13 +486,14 @@ def _backward_tile(
     layout: tuple,
     limits: tuple,
     grad_sums: np.ndarray,
-    transmittance: np.ndarray,
-    last: np.ndarray,
+    kept: tuple,
     pair_grads: np.ndarray,
+    thread: int,
 ) -> None:  # pragma: no cover - compiled
-    """One tile of `composite_backward`: its Gaussians back to front, from the deepest
-    pair any pixel drew."""
+    """One tile of `composite_backward` on `thread`: its Gaussians back to front, from
+    the deepest pair any pixel drew."""
     tile_start, tile_count = scene[5], scene[6]
+    transmittance, last, alphas, offsets = kept
     x0, y0, x1, y1 = _tile_box(tile, layout)
     width, rows = x1 - x0, y1 - y0
     centres = _centres(x0, y0, width, rows)
@@ -471,7 +514,7 @@ def _backward_tile(
     deepest = taken.max() if cells > 0 else -1
     pair_grads[start + deepest + 1 : start + tile_count[tile]] = 0.0
     _backward_list(scene, tile, (x0, y0, x1, y1), limits, centres, trans, rest, taken,
-                   upstream, pair_grads, deepest)  # fmt: skip
+                   upstream, pair_grads, deepest, alphas[thread], offsets)  # fmt: skip
 
 
 # Two flags make the per-cell loop vectorise: division without numba's zero check (1 − α
@@ -492,14 +535,16 @@ def _backward_list(
     upstream: tuple,
     pair_grads: np.ndarray,
     deepest: int,
+    alphas: np.ndarray,
+    offsets: np.ndarray,
 ) -> None:  # pragma: no cover - compiled
     """The tile's Gaussians back to front, from the deepest pair any pixel drew."""
     gaussian, start = scene[4], scene[5][tile]
     log_alpha_min = math.log(limits[0])
     for k in range(deepest, -1, -1):
         _backward_gaussian(scene, gaussian[start + k], k, box, limits, log_alpha_min,
-                           centres, trans, rest, taken, upstream,
-                           pair_grads[start + k])  # fmt: skip
+                           centres, trans, rest, taken, upstream, pair_grads[start + k],
+                           alphas[offsets[start + k] :])  # fmt: skip
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -516,14 +561,15 @@ def _backward_gaussian(
     taken: np.ndarray,
     upstream: tuple,
     grad: np.ndarray,
+    alphas: np.ndarray,
 ) -> None:  # pragma: no cover - compiled
     """Write Gaussian `g`'s gradients over the tile's pixels to grad [`PAIR_GRADS`], and
     step each pixel's transmittance and R back past it. Straight-line per cell over the
-    same runs of cells as `_forward_gaussian`: a cell the pair did not draw adds zeros and
-    keeps its state."""
+    same runs of cells as `_forward_gaussian`, with the α it kept (`alphas`, from its
+    first): a cell the pair did not draw adds zeros and keeps its state."""
     features = scratch = scene[3]  # scratch: the dtype to round to
     a_min, a_max, _ = _thresholds(scratch, limits)
-    mx, my, lo, a, b, c, r0, r1, b0, b1 = _footprint(scene, g, box, log_alpha_min)
+    mx, my, _, a, b, c, r0, r1, b0, b1 = _footprint(scene, g, box, log_alpha_min)
     f0, f1, f2, f3 = features[g, 0], features[g, 1], features[g, 2], features[g, 3]
     u0s, u1s, u2s, u3s, u4s = upstream
     xs, ys = centres
@@ -532,10 +578,11 @@ def _backward_gaussian(
     g_mx = g_my = g_a = g_b = g_c = g_lo = g_r = g_g = g_bl = g_d = abs_x = abs_y = 0.0
     for block in range(b0, b1 + 1):
         first = block * column_cells + r0 * LANES
+        here = alphas[(block - b0) * run :]
         for j in range(run):
             p = np.uint64(first + j)
             dx, dy = xs[p] - mx, ys[p] - my
-            raw = _exp(scratch, _exponent(lo, a, b, c, dx, dy))
+            raw = here[j]
             alpha = min(raw, a_max)
             live = (k <= taken[p]) & (alpha >= a_min)
             shape = live & (not raw > a_max)  # α not clamped: it moves with the shape

@@ -146,12 +146,13 @@ def test_a_render_without_gradients_keeps_no_backward_state_and_draws_the_same(
 ) -> None:
     gaussians, camera, background = random_scene(6, 1500, 77, 53, torch.float32, 2)
     renderer = CpuTileConfig().build()
-    kept: list[tuple[int, ...]] = []
+    kept: list[tuple[int, int, bool]] = []
     launch = cpu_tile._launch
 
     def spy(kernel: Any, threads: int | None, *args: Any) -> None:
         if kernel.__name__ == "composite_forward":
-            kept.append(args[5].shape)  # the per-pixel transmittance kept for backward
+            transmittance, _, alphas, _ = args[5]  # what the forward keeps for backward
+            kept.append((*transmittance.shape, alphas.size > 0))
         launch(kernel, threads, *args)
 
     monkeypatch.setattr(cpu_tile, "_launch", spy)
@@ -160,10 +161,55 @@ def test_a_render_without_gradients_keeps_no_backward_state_and_draws_the_same(
     with torch.no_grad():
         without = renderer(Gaussians(**leaves, sh_degree=2), camera, background, contribution=True)
     still = renderer(gaussians, camera, background, contribution=True)  # nothing requires grad
-    assert kept == [(camera.height, camera.width), (0, 0), (0, 0)]
+    assert kept == [(camera.height, camera.width, True), (0, 0, False), (0, 0, False)]
     for out in (without, still):
         for name in ("rgb", "alpha", "depth", "contribution"):
             assert torch.equal(getattr(out, name), getattr(with_grad, name).detach()), name
+
+
+def test_the_alphas_kept_for_backward_are_reused_only_once_their_graph_is_freed(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # The forward keeps each pair's α for the backward in an array that later renders
+    # reuse (`cpu_tile._AlphaStore`). A graph still alive keeps its own: backward through it,
+    # twice, while other renders come and go, gives the gradients of a render on its own.
+    renderer = CpuTileConfig(threads=2).build()
+    arrays: list[np.ndarray] = []
+    launch = cpu_tile._launch
+
+    def spy(kernel: Any, threads: int | None, *args: Any) -> None:
+        if kernel.__name__ == "composite_forward":
+            arrays.append(args[5][2])
+        launch(kernel, threads, *args)
+
+    monkeypatch.setattr(cpu_tile, "_launch", spy)
+
+    def loss(seed: int) -> tuple[Tensor, dict[str, Tensor]]:
+        gaussians, camera, background = random_scene(seed, 1500, 77, 53, torch.float32, 2)
+        leaves = {name: getattr(gaussians, name).clone().requires_grad_(True) for name in PARAMS}
+        out = renderer(Gaussians(**leaves, sh_degree=2), camera, background)
+        weights = torch.linspace(-1.0, 1.0, out.rgb.numel()).view_as(out.rgb)
+        return (out.rgb * weights).sum() + out.alpha.sum(), leaves
+
+    first, leaves = loss(6)
+    first.backward()
+    want = {name: leaf.grad.clone() for name, leaf in leaves.items() if leaf.grad is not None}
+    del first, leaves
+    kept, leaves = loss(6)
+    for seed in (7, 8, 9):
+        other, _ = loss(seed)
+        other.backward()
+        del other
+    # `kept` took the first render's array once that graph was freed; the others took one
+    # more array, in turn, and never the one `kept`'s graph holds.
+    assert arrays[1] is arrays[0]
+    assert arrays[2] is arrays[3] is arrays[4] and arrays[2] is not arrays[1]
+    for _ in range(2):
+        for leaf in leaves.values():
+            leaf.grad = None
+        kept.backward(retain_graph=True)
+        for name, grad in want.items():
+            assert torch.equal(leaves[name].grad, grad), name
 
 
 def test_the_same_render_on_every_run_and_thread_count() -> None:
