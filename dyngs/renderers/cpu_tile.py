@@ -425,8 +425,8 @@ class _Composite(torch.autograd.Function):
         transmittance = np.ones(state)
         last = np.full(state, -1, dtype=np.int64)
         alphas = _ALPHAS.take(plan, order, scene[3].dtype)
-        kept = (transmittance, last, alphas, np.empty(len(scene[4]) if plan.backward else 0,
-                                                     dtype=np.int64))  # fmt: skip
+        feet = np.empty((len(scene[4]) if plan.backward else 0, 5), dtype=np.int64)
+        kept = (transmittance, last, alphas, feet)
         per_pair = np.zeros(len(scene[4]) if plan.contribution else 0)
         plan.work = np.zeros((len(order), 2), dtype=np.int64)
         _launch(tile_kernels.composite_forward, plan.threads, scene, order, plan.layout(),

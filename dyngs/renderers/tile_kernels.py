@@ -177,15 +177,17 @@ def _reach(
 #             gaussian [M], tile_start [T], tile_count [T])
 #   layout = (tiles_x, tile_size, width, height)
 #   limits = (alpha_min, alpha_max, transmittance_min)
-#   kept   = (transmittance [H, W], last [H, W], alphas [threads, A], offsets [M]): what
-#            forward keeps for backward, all empty when no backward will follow. The α of
-#            pair m over the cells it ran, block by block, row by row, are
-#            alphas[j, offsets[m]:], j the thread that composited its tile (both kernels
-#            deal tiles to threads alike). Each thread fills its row downwards from the end,
-#            pair after pair: so backward, taking a tile's pairs back to front, reads them
-#            in ascending order, which the hardware prefetches (front to back, backward was
-#            no faster for them wherever they outgrew the caches), and what a render writes
-#            is always the end of the row (`cpu_tile._AlphaStore` reuses the arrays).
+#   kept   = (transmittance [H, W], last [H, W], alphas [threads, A], feet [M, 5]): what
+#            forward keeps for backward, all empty when no backward will follow. Pair m's
+#            footprint is feet[m, 1:] = (r0, r1, b0, b1) (`_footprint`, whose square roots
+#            and divisions backward need not repeat), and its α over the cells it ran,
+#            block by block, row by row, are alphas[j, feet[m, 0]:], j the thread that
+#            composited its tile (both kernels deal tiles to threads alike). Each thread
+#            fills its row downwards from the end, pair after pair: so backward, taking a
+#            tile's pairs back to front, reads them in ascending order, which the hardware
+#            prefetches (front to back, backward was no faster for them wherever they
+#            outgrew the caches), and what a render writes is always the end of the row
+#            (`cpu_tile._AlphaStore` reuses the arrays).
 # means2d, conics (a, b, c of Q = Σ⁻¹) and ln opacity are float64; features (r, g, b,
 # depth) are in the compositing dtype, which every decision is made in.
 #
@@ -314,11 +316,11 @@ def _forward_tile(
     taken = np.full(cells, -1, dtype=np.int64)
     weights = np.zeros(cells)  # w of the current pair, per cell
     box = (x0, y0, x1, y1)
-    transmittance, last, alphas, offsets = kept
+    transmittance, last, alphas, feet = kept
     keep = transmittance.shape[0] > 0  # the state backward needs, when it will run
     lanes, pairs, stored = _forward_list(scene, tile, box, limits, centres, running, acc,
                                          taken, weights, contribution,
-                                         alphas[thread] if keep else alphas[0], offsets,
+                                         alphas[thread] if keep else alphas[0], feet,
                                          stored)  # fmt: skip
     for r in range(rows):
         for i in range(width):
@@ -348,7 +350,7 @@ def _forward_list(
     weights: np.ndarray,
     contribution: np.ndarray,
     alphas: np.ndarray,
-    offsets: np.ndarray,
+    feet: np.ndarray,
     stored: int,
 ) -> tuple[int, int, int]:  # pragma: no cover - compiled
     """The tile's Gaussians front to back, until every pixel has stopped, each one's α
@@ -360,7 +362,7 @@ def _forward_list(
     active = (y1 - y0) * (x1 - x0)
     lanes = pairs = 0
     start = tile_start[tile]
-    keep = offsets.shape[0] > 0
+    keep = feet.shape[0] > 0
     for k in range(tile_count[tile]):
         if active == 0:
             break
@@ -368,7 +370,9 @@ def _forward_list(
         foot = _footprint(scene, g, box, log_alpha_min)
         if keep:
             stored -= max(foot[7] + 1 - foot[6], 0) * LANES * max(foot[9] + 1 - foot[8], 0)
-            offsets[start + k] = stored
+            feet[start + k, 0] = stored
+            feet[start + k, 1], feet[start + k, 2] = foot[6], foot[7]
+            feet[start + k, 3], feet[start + k, 4] = foot[8], foot[9]
         drawn, stopped, ran, took = _forward_gaussian(
             scene, g, k, foot, box, limits, centres, running, acc, taken, weights,
             contribution.shape[0] > 0, alphas, stored if keep else -1,
@@ -493,7 +497,7 @@ def _backward_tile(
     """One tile of `composite_backward` on `thread`: its Gaussians back to front, from
     the deepest pair any pixel drew."""
     tile_start, tile_count = scene[5], scene[6]
-    transmittance, last, alphas, offsets = kept
+    transmittance, last, alphas, feet = kept
     x0, y0, x1, y1 = _tile_box(tile, layout)
     width, rows = x1 - x0, y1 - y0
     centres = _centres(x0, y0, width, rows)
@@ -514,7 +518,7 @@ def _backward_tile(
     deepest = taken.max() if cells > 0 else -1
     pair_grads[start + deepest + 1 : start + tile_count[tile]] = 0.0
     _backward_list(scene, tile, (x0, y0, x1, y1), limits, centres, trans, rest, taken,
-                   upstream, pair_grads, deepest, alphas[thread], offsets)  # fmt: skip
+                   upstream, pair_grads, deepest, alphas[thread], feet)  # fmt: skip
 
 
 # Two flags make the per-cell loop vectorise: division without numba's zero check (1 − α
@@ -536,15 +540,14 @@ def _backward_list(
     pair_grads: np.ndarray,
     deepest: int,
     alphas: np.ndarray,
-    offsets: np.ndarray,
+    feet: np.ndarray,
 ) -> None:  # pragma: no cover - compiled
     """The tile's Gaussians back to front, from the deepest pair any pixel drew."""
     gaussian, start = scene[4], scene[5][tile]
-    log_alpha_min = math.log(limits[0])
     for k in range(deepest, -1, -1):
-        _backward_gaussian(scene, gaussian[start + k], k, box, limits, log_alpha_min,
-                           centres, trans, rest, taken, upstream, pair_grads[start + k],
-                           alphas[offsets[start + k] :])  # fmt: skip
+        _backward_gaussian(scene, gaussian[start + k], k, box, limits, centres, trans, rest,
+                           taken, upstream, pair_grads[start + k],
+                           alphas[feet[start + k, 0] :], feet[start + k])  # fmt: skip
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -554,7 +557,6 @@ def _backward_gaussian(
     k: int,
     box: tuple,
     limits: tuple,
-    log_alpha_min: float,
     centres: tuple,
     trans: np.ndarray,
     rest: np.ndarray,
@@ -562,14 +564,19 @@ def _backward_gaussian(
     upstream: tuple,
     grad: np.ndarray,
     alphas: np.ndarray,
+    foot: np.ndarray,
 ) -> None:  # pragma: no cover - compiled
     """Write Gaussian `g`'s gradients over the tile's pixels to grad [`PAIR_GRADS`], and
     step each pixel's transmittance and R back past it. Straight-line per cell over the
-    same runs of cells as `_forward_gaussian`, with the α it kept (`alphas`, from its
-    first): a cell the pair did not draw adds zeros and keeps its state."""
+    same runs of cells as `_forward_gaussian` (`foot`: its row of `kept`'s feet), with the
+    α it kept (`alphas`, from its first): a cell the pair did not draw adds zeros and keeps
+    its state."""
     features = scratch = scene[3]  # scratch: the dtype to round to
     a_min, a_max, _ = _thresholds(scratch, limits)
-    mx, my, _, a, b, c, r0, r1, b0, b1 = _footprint(scene, g, box, log_alpha_min)
+    means2d, conics = scene[0], scene[1]
+    mx, my = means2d[g, 0], means2d[g, 1]
+    a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
+    r0, r1, b0, b1 = foot[1], foot[2], foot[3], foot[4]
     f0, f1, f2, f3 = features[g, 0], features[g, 1], features[g, 2], features[g, 3]
     u0s, u1s, u2s, u3s, u4s = upstream
     xs, ys = centres
