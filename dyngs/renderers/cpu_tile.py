@@ -203,16 +203,17 @@ class _AlphaStore:
         self._lock = threading.Lock()
 
     def take(self, plan: _Plan, order: np.ndarray, dtype: np.dtype) -> np.ndarray:
-        """An array [threads, capacity] for a render of `plan`; empty when no backward
-        will follow."""
+        """An array [threads, capacity] for a render of `plan` (when no backward will
+        follow, one tile's cells a thread, which each pair overwrites)."""
         from dyngs.renderers import tile_kernels
 
         threads = thread_count(plan.threads)
+        tile = tile_kernels.tile_cells(plan.size[2])
         if not plan.backward:
-            return np.empty((1, 0), dtype=dtype)
+            return np.empty((threads, tile), dtype=dtype)
         counts = plan.bins.tile_count.numpy()[order]
         most = max(int(counts[j::threads].sum()) for j in range(threads))
-        cells = max(most * tile_kernels.tile_cells(plan.size[2]), 1)
+        cells = max(most * tile, 1)
         with self._lock:
             for i, array in enumerate(self._free):
                 if array.dtype == dtype and array.shape[0] == threads and array.shape[1] >= cells:
@@ -433,7 +434,7 @@ class _Composite(torch.autograd.Function):
                 plan.limits(), sums, kept, per_pair, plan.work)  # fmt: skip
         ctx.plan = plan
         ctx.state = (scene, order, kept)
-        if alphas.size:  # back to the store when the graph (and with it ctx) is freed
+        if plan.backward:  # back to the store when the graph (and with it ctx) is freed
             weakref.finalize(ctx, _ALPHAS.give, alphas)
         contribution = torch.from_numpy(per_pair)
         ctx.mark_non_differentiable(contribution)

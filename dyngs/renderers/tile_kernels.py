@@ -178,7 +178,9 @@ def _reach(
 #   layout = (tiles_x, tile_size, width, height)
 #   limits = (alpha_min, alpha_max, transmittance_min)
 #   kept   = (transmittance [H, W], last [H, W], alphas [threads, A], feet [M, 5]): what
-#            forward keeps for backward, all empty when no backward will follow. Pair m's
+#            forward keeps for backward, empty when no backward will follow (but alphas:
+#            then one tile's cells a thread, each pair's α written over the last's, as an
+#            unconditional store is far cheaper than a masked one on AMD's cores). Pair m's
 #            footprint is feet[m, 1:] = (r0, r1, b0, b1) (`_footprint`, whose square roots
 #            and divisions backward need not repeat), and its α over the cells it ran,
 #            block by block, row by row, are alphas[j, feet[m, 0]:], j the thread that
@@ -279,7 +281,7 @@ def composite_forward(
     whether or not it is inside the ellipse) and the pairs it drew.
     """
     for thread in prange(threads):
-        stored = kept[2].shape[1]  # where the α this thread's row holds start
+        stored = kept[2].shape[1] if kept[3].shape[0] > 0 else 0  # where its α start
         for i in range(thread, tile_order.shape[0], threads):
             lanes, drawn, stored = _forward_tile(scene, tile_order[i], layout, limits, sums,
                                                  kept, contribution, thread, stored)  # fmt: skip
@@ -319,8 +321,7 @@ def _forward_tile(
     transmittance, last, alphas, feet = kept
     keep = transmittance.shape[0] > 0  # the state backward needs, when it will run
     lanes, pairs, stored = _forward_list(scene, tile, box, limits, centres, running, acc,
-                                         taken, weights, contribution,
-                                         alphas[thread] if keep else alphas[0], feet,
+                                         taken, weights, contribution, alphas[thread], feet,
                                          stored)  # fmt: skip
     for r in range(rows):
         for i in range(width):
@@ -375,7 +376,7 @@ def _forward_list(
             feet[start + k, 3], feet[start + k, 4] = foot[8], foot[9]
         drawn, stopped, ran, took = _forward_gaussian(
             scene, g, k, foot, box, limits, centres, running, acc, taken, weights,
-            contribution.shape[0] > 0, alphas, stored if keep else -1,
+            contribution.shape[0] > 0, alphas, stored,
         )  # fmt: skip
         active -= stopped
         lanes += ran
@@ -405,8 +406,7 @@ def _forward_gaussian(
     stored: int,
 ) -> tuple[float, int, int, int]:  # pragma: no cover - compiled
     """Draw Gaussian `g` (position `k` in the tile's list; `foot` its `_footprint`) into
-    the tile's pixel state, and each cell's unclamped α into `alphas` from `stored` on
-    (unless it is negative).
+    the tile's pixel state, and each cell's unclamped α into `alphas` from `stored` on.
     Returns Σ w over the pixels it drew (when `measure`), how many pixels stopped at it,
     how many cells it ran and how many pixels it drew.
 
@@ -431,8 +431,7 @@ def _forward_gaussian(
         for j in range(run):
             p = np.uint64(first + j)
             raw = _exp(scratch, _exponent(lo, a, b, c, xs[p] - mx, ys[p] - my))
-            if stored >= 0:
-                alphas[np.uint64(here + j)] = raw
+            alphas[np.uint64(here + j)] = raw
             alpha = min(raw, a_max)
             t = running[p]
             live = (t > 0.0) & (alpha >= a_min)

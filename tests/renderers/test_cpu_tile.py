@@ -146,13 +146,13 @@ def test_a_render_without_gradients_keeps_no_backward_state_and_draws_the_same(
 ) -> None:
     gaussians, camera, background = random_scene(6, 1500, 77, 53, torch.float32, 2)
     renderer = CpuTileConfig().build()
-    kept: list[tuple[int, int, bool]] = []
+    kept: list[tuple[int, int, int, int]] = []
     launch = cpu_tile._launch
 
     def spy(kernel: Any, threads: int | None, *args: Any) -> None:
         if kernel.__name__ == "composite_forward":
-            transmittance, _, alphas, _ = args[5]  # what the forward keeps for backward
-            kept.append((*transmittance.shape, alphas.size > 0))
+            transmittance, _, alphas, feet = args[5]  # what the forward keeps for backward
+            kept.append((*transmittance.shape, len(feet), alphas.shape[1]))
         launch(kernel, threads, *args)
 
     monkeypatch.setattr(cpu_tile, "_launch", spy)
@@ -161,7 +161,12 @@ def test_a_render_without_gradients_keeps_no_backward_state_and_draws_the_same(
     with torch.no_grad():
         without = renderer(Gaussians(**leaves, sh_degree=2), camera, background, contribution=True)
     still = renderer(gaussians, camera, background, contribution=True)  # nothing requires grad
-    assert kept == [(camera.height, camera.width, True), (0, 0, False), (0, 0, False)]
+    # Without backward: no per-pixel state, no footprints, and one tile's α a thread.
+    from dyngs.renderers import tile_kernels
+
+    tile = tile_kernels.tile_cells(CpuTileConfig().tile_size)
+    assert kept[0][:2] == (camera.height, camera.width) and kept[0][2] > 0
+    assert kept[1:] == [(0, 0, 0, tile), (0, 0, 0, tile)]
     for out in (without, still):
         for name in ("rgb", "alpha", "depth", "contribution"):
             assert torch.equal(getattr(out, name), getattr(with_grad, name).detach()), name
