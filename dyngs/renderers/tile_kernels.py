@@ -375,8 +375,8 @@ def _forward_list(
             feet[start + k, 1], feet[start + k, 2] = foot[6], foot[7]
             feet[start + k, 3], feet[start + k, 4] = foot[8], foot[9]
         drawn, stopped, ran, took = _forward_gaussian(
-            scene, g, k, foot, box, limits, centres, running, acc, taken, weights,
-            contribution.shape[0] > 0, alphas, stored,
+            scene, g, k, foot, box, limits, centres, (running, acc, taken, weights),
+            contribution.shape[0] > 0, (alphas, stored),
         )  # fmt: skip
         active -= stopped
         lanes += ran
@@ -397,18 +397,14 @@ def _forward_gaussian(
     box: tuple,
     limits: tuple,
     centres: tuple,
-    running: np.ndarray,
-    acc: tuple,
-    taken: np.ndarray,
-    weights: np.ndarray,
+    state: tuple,
     measure: bool,
-    alphas: np.ndarray,
-    stored: int,
+    kept: tuple,
 ) -> tuple[float, int, int, int]:  # pragma: no cover - compiled
     """Draw Gaussian `g` (position `k` in the tile's list; `foot` its `_footprint`) into
-    the tile's pixel state, and each cell's unclamped α into `alphas` from `stored` on.
-    Returns Σ w over the pixels it drew (when `measure`), how many pixels stopped at it,
-    how many cells it ran and how many pixels it drew.
+    the tile's pixel state (running, acc, taken, weights), and each cell's unclamped α into
+    kept = (alphas, first). Returns Σ w over the pixels it drew (when `measure`), how many
+    pixels stopped at it, how many cells it ran and how many pixels it drew.
 
     Within each block of columns it reaches, the cells of its rows are one run, and every
     cell runs the same straight-line code (each branch of the per-pixel rule a select,
@@ -419,8 +415,8 @@ def _forward_gaussian(
     zero = _to_dtype(scratch, 0.0)
     mx, my, lo, a, b, c, r0, r1, b0, b1 = foot
     f0, f1, f2, f3 = features[g, 0], features[g, 1], features[g, 2], features[g, 3]
-    acc0, acc1, acc2, acc3, acc4 = acc
-    xs, ys = centres
+    running, (acc0, acc1, acc2, acc3, acc4), taken, weights = state
+    (alphas, stored), (xs, ys) = kept, centres
     column_cells = (box[3] - box[1]) * LANES  # the cells of one block
     run = max(r1 + 1 - r0, 0) * LANES
     drawn = 0.0
@@ -544,9 +540,9 @@ def _backward_list(
     """The tile's Gaussians back to front, from the deepest pair any pixel drew."""
     gaussian, start = scene[4], scene[5][tile]
     for k in range(deepest, -1, -1):
-        _backward_gaussian(scene, gaussian[start + k], k, box, limits, centres, trans, rest,
-                           taken, upstream, pair_grads[start + k],
-                           alphas[feet[start + k, 0] :], feet[start + k])  # fmt: skip
+        _backward_gaussian(scene, gaussian[start + k], k, box, limits, centres,
+                           (trans, rest, taken, upstream), pair_grads[start + k],
+                           (alphas[feet[start + k, 0] :], feet[start + k]))  # fmt: skip
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -557,27 +553,21 @@ def _backward_gaussian(
     box: tuple,
     limits: tuple,
     centres: tuple,
-    trans: np.ndarray,
-    rest: np.ndarray,
-    taken: np.ndarray,
-    upstream: tuple,
+    state: tuple,
     grad: np.ndarray,
-    alphas: np.ndarray,
-    foot: np.ndarray,
+    kept: tuple,
 ) -> None:  # pragma: no cover - compiled
-    """Write Gaussian `g`'s gradients over the tile's pixels to grad [`PAIR_GRADS`], and
-    step each pixel's transmittance and R back past it. Straight-line per cell over the
-    same runs of cells as `_forward_gaussian` (`foot`: its row of `kept`'s feet), with the
-    α it kept (`alphas`, from its first): a cell the pair did not draw adds zeros and keeps
-    its state."""
+    """Write Gaussian `g`'s gradients over the tile's pixels to grad [`PAIR_GRADS`] and step
+    each pixel's transmittance and R back past it (state: trans, rest, taken, upstream), on
+    the runs of cells `_forward_gaussian` ran, with what it kept (its α on, its feet row):
+    straight-line per cell, a cell the pair did not draw adding zeros, keeping its state."""
     features = scratch = scene[3]  # scratch: the dtype to round to
     a_min, a_max, _ = _thresholds(scratch, limits)
-    means2d, conics = scene[0], scene[1]
-    mx, my = means2d[g, 0], means2d[g, 1]
-    a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
-    r0, r1, b0, b1 = foot[1], foot[2], foot[3], foot[4]
+    means2d, conics, (alphas, foot) = scene[0], scene[1], kept
+    mx, my, a, b, c = means2d[g, 0], means2d[g, 1], conics[g, 0], conics[g, 1], conics[g, 2]
+    r0, r1, b0, b1 = foot[1], foot[2], foot[3], foot[4]  # not unpacked: that was 2× slower
     f0, f1, f2, f3 = features[g, 0], features[g, 1], features[g, 2], features[g, 3]
-    u0s, u1s, u2s, u3s, u4s = upstream
+    trans, rest, taken, (u0s, u1s, u2s, u3s, u4s) = state
     xs, ys = centres
     column_cells = (box[3] - box[1]) * LANES
     run = max(r1 + 1 - r0, 0) * LANES

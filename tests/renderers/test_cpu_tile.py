@@ -214,7 +214,8 @@ def test_the_alphas_kept_for_backward_are_reused_only_once_their_graph_is_freed(
             leaf.grad = None
         kept.backward(retain_graph=True)
         for name, grad in want.items():
-            assert torch.equal(leaves[name].grad, grad), name
+            got = leaves[name].grad
+            assert got is not None and torch.equal(got, grad), name
 
 
 def test_the_same_render_on_every_run_and_thread_count() -> None:
