@@ -218,26 +218,45 @@ def _time_compositing() -> list[float]:
 
 def measure_rates(threads: int, seconds: float = 0.5) -> dict[str, float]:
     """The machine's float32 multiply-add rate (operations/s, all threads) and vectorised
-    float32 exp rate (per second, all threads: one core's NumPy rate × threads)."""
+    float32 exp rate (per second, all threads: one core's NumPy rate × threads).
+
+    The multiply-adds run on 256-float rows held in L1, eight dependent ones on each
+    vector of a row between its load and its store, so that the vector units, not loads
+    and stores, set the pace; `contract` lets LLVM fuse each multiply and add into one FMA
+    but not reassociate the chain. (Until 2026-11-27 this wrote `acc = acc * c + a` on
+    whole arrays, which in numba allocates a new array every round and measured 18-23
+    GFLOP/s on two cores instead of ~400: every "× limit" before then is ~20× too low in
+    its arithmetic part; docs/RENDERER.md.)"""
     import numba
     from numba import njit, prange
 
-    @njit(parallel=True, fastmath=True)
-    def fmas(x: np.ndarray, rounds: int) -> float:  # 8 independent chains per lane
+    @njit(parallel=True, fastmath={"contract"})
+    def fmas(x: np.ndarray, rounds: int) -> float:  # rounds a multiple of 8
         total = 0.0
+        c = np.float32(0.999)
         for t in prange(x.shape[0]):
             a = x[t]
             acc = np.zeros_like(a)
-            for _ in range(rounds):
-                acc = acc * np.float32(0.999) + a
+            for _ in range(rounds // 8):
+                for i in range(a.shape[0]):
+                    v, ai = acc[i], a[i]
+                    v = v * c + ai
+                    v = v * c + ai
+                    v = v * c + ai
+                    v = v * c + ai
+                    v = v * c + ai
+                    v = v * c + ai
+                    v = v * c + ai
+                    v = v * c + ai
+                    acc[i] = v
             total += acc.sum()
         return total
 
     numba.set_num_threads(threads)
     rng = np.random.default_rng(0)
     x = rng.random((threads * 4, 256), dtype=np.float32)
-    fmas(x, 10)
-    rounds = 20000
+    fmas(x, 16)
+    rounds = 80000
     started = time.perf_counter()
     fmas(x, rounds)
     flops = 2 * x.size * rounds / (time.perf_counter() - started)
