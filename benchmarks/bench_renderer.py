@@ -223,10 +223,9 @@ def measure_rates(threads: int, seconds: float = 0.5) -> dict[str, float]:
     The multiply-adds run on 256-float rows held in L1, eight dependent ones on each
     vector of a row between its load and its store, so that the vector units, not loads
     and stores, set the pace; `contract` lets LLVM fuse each multiply and add into one FMA
-    but not reassociate the chain. (Until 2026-11-27 this wrote `acc = acc * c + a` on
-    whole arrays, which in numba allocates a new array every round and measured 18-23
-    GFLOP/s on two cores instead of ~400: every "× limit" before then is ~20× too low in
-    its arithmetic part; docs/RENDERER.md.)"""
+    but not reassociate the chain. (Written as `acc = acc * c + a` on whole arrays, as it
+    first was, numba allocates a new array every round and the allocator sets the pace:
+    docs/RENDERER.md, "The physical limit, corrected", says what that did to the limit.)"""
     import numba
     from numba import njit, prange
 

@@ -258,6 +258,13 @@ def _footprint(
     return mx, my, lo, a, b, c, r0 - y0, r1 - y0, (c0 - x0) // LANES, (c1 - x0) // LANES
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _footprint_cells(foot: tuple) -> int:  # pragma: no cover - compiled
+    """The cells a pair runs, given its `_footprint`: its rows × LANES in each block."""
+    r0, r1, b0, b1 = foot[6], foot[7], foot[8], foot[9]
+    return max(r1 + 1 - r0, 0) * LANES * max(b1 + 1 - b0, 0)
+
+
 @njit(parallel=True, cache=True, nogil=True)
 def composite_forward(
     scene: tuple,
@@ -370,7 +377,7 @@ def _forward_list(
         g = gaussian[start + k]
         foot = _footprint(scene, g, box, log_alpha_min)
         if keep:
-            stored -= max(foot[7] + 1 - foot[6], 0) * LANES * max(foot[9] + 1 - foot[8], 0)
+            stored -= _footprint_cells(foot)
             feet[start + k, 0] = stored
             feet[start + k, 1], feet[start + k, 2] = foot[6], foot[7]
             feet[start + k, 3], feet[start + k, 4] = foot[8], foot[9]
@@ -448,7 +455,7 @@ def _forward_gaussian(
         if measure:
             for j in range(run):
                 drawn += weights[first + j]
-    return drawn, stopped, run * max(b1 + 1 - b0, 0), pairs
+    return drawn, stopped, _footprint_cells(foot), pairs
 
 
 @njit(parallel=True, cache=True, nogil=True)

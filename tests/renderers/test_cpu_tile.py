@@ -205,8 +205,8 @@ def test_the_alphas_kept_for_backward_are_reused_only_once_their_graph_is_freed(
         other, _ = loss(seed)
         other.backward()
         del other
-    # `kept` took the first render's array once that graph was freed; the others took one
-    # more array, in turn, and never the one `kept`'s graph holds.
+    # `kept` took the first render's array once that graph was freed; the others, each
+    # freed before the next, all reused one more array, never the one `kept`'s graph holds.
     assert arrays[1] is arrays[0]
     assert arrays[2] is arrays[3] is arrays[4] and arrays[2] is not arrays[1]
     for _ in range(2):
