@@ -205,9 +205,14 @@ class Lifecycle:
         window = schedules.time_window(cfg, step)
         poses = self.data.train_poses(window, cfg.densify.importance_views)
         background = self.data.background
+        drawn: tuple[float, Gaussians] | None = None
         with torch.no_grad():
             for camera, t in self.group.share(poses):  # every pose, with one process
-                out = renderer.with_contribution(self.model.at(t), camera, background)
+                # The poses come in time order: the views of one time (its cameras) share
+                # one deformation of the Gaussians.
+                if drawn is None or drawn[0] != t:
+                    drawn = (t, self.model.at(t))
+                out = renderer.with_contribution(drawn[1], camera, background)
                 assert out.contribution is not None
                 importance = torch.maximum(importance, out.contribution.to(importance.dtype))
         self.group.max_([importance])

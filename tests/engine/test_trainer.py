@@ -16,6 +16,7 @@ from dyngs.engine.writer import NullWriter
 from dyngs.metrics import psnr
 from dyngs.model import GaussianConfig
 from dyngs.renderers.base import ContributionRenderer
+from dyngs.types import Gaussians
 from tests.conftest import shared_scene
 from tests.engine.helpers import (
     assert_same_state,
@@ -191,9 +192,21 @@ def test_importance_is_the_largest_share_of_any_view_of_the_window(tmp_path: Pat
             assert out.contribution is not None
             expected = torch.maximum(expected, out.contribution)
     assert expected.max() > 0.5 > expected.min()  # both sides of the threshold occur
+    times: list[float] = []
+    deform = trainer.model.at
+
+    def counted(t: float) -> Gaussians:
+        times.append(t)
+        return deform(t)
+
+    trainer.model.at = counted  # type: ignore[method-assign, assignment]
     torch.testing.assert_close(
         trainer.lifecycle.measure_importance(step, trainer.renderer), expected, rtol=0, atol=1e-6
     )
+    # One deformation a time, whatever number of cameras saw it (two a time here).
+    distinct = {float(split.times[i]) for i in views}
+    assert len(views) > len(distinct)
+    assert sorted(times) == sorted(distinct)
 
 
 @pytest.mark.parametrize("views", [0, 100])
