@@ -204,17 +204,8 @@ class Lifecycle:
             return importance.fill_(math.inf)  # never prune by what cannot be measured
         window = schedules.time_window(cfg, step)
         poses = self.data.train_poses(window, cfg.densify.importance_views)
-        background = self.data.background
-        drawn: tuple[float, Gaussians] | None = None
-        with torch.no_grad():
-            for camera, t in self.group.share(poses):  # every pose, with one process
-                # The poses come in time order: the views of one time (its cameras) share
-                # one deformation of the Gaussians.
-                if drawn is None or drawn[0] != t:
-                    drawn = (t, self.model.at(t))
-                out = renderer.with_contribution(drawn[1], camera, background)
-                assert out.contribution is not None
-                importance = torch.maximum(importance, out.contribution.to(importance.dtype))
+        mine = self.group.share(poses)  # every pose, with one process
+        largest_shares(self.model, renderer, mine, self.data.background, importance)
         self.group.max_([importance])
         return importance
 
@@ -305,6 +296,25 @@ class Lifecycle:
 
     def _say(self, line: str) -> None:
         self.console.print(line, highlight=False, markup=False)
+
+
+@torch.no_grad()
+def largest_shares(
+    model: DynamicGaussians,
+    renderer: ContributionRenderer,
+    poses: list[tuple[Camera, float]],
+    background: Tensor,
+    importance: Tensor,
+) -> None:
+    """Raise `importance` in place to each Gaussian's share of every pose's view. The poses
+    come in time order: the views of one time (its cameras) share one deformation."""
+    drawn: tuple[float, Gaussians] | None = None
+    for camera, t in poses:
+        if drawn is None or drawn[0] != t:
+            drawn = (t, model.at(t))
+        out = renderer.with_contribution(drawn[1], camera, background)
+        assert out.contribution is not None
+        torch.maximum(importance, out.contribution.to(importance.dtype), out=importance)
 
 
 def densify_statistics(
