@@ -107,3 +107,26 @@ def test_carved_points_of_what_moves_live_when_it_was_there(tmp_path: Path) -> N
     assert float((still < 0.3).mean()) > 0.5
     assert bool((times[temporal, 1] > 0).all()) and bool((times[temporal, 1] <= 0.5).all())
     assert init_points.ETERNAL_SHARE > 0.5
+
+
+def test_a_place_carved_into_several_temporal_gaussians_gets_its_places_scale() -> None:
+    """Four Gaussians at one carved place (held by four stretches of time) would have
+    their three nearest at distance 0 and start at the 1e-7 floor, drawing nothing for
+    good; they get the place's distance to its nearest other places instead, and every
+    other Gaussian keeps the plain mean distance to its three nearest."""
+    gen = torch.Generator().manual_seed(3)
+    others = torch.rand(40, 3, generator=gen) - 0.5
+    place = torch.tensor([[0.05, -0.02, 0.1]])
+    points = torch.cat((others, place.expand(4, 3)))
+    stretches = torch.tensor([[0.1, 0.05], [0.4, 0.05], [0.6, 0.05], [0.9, 0.05]])
+    lifetimes = torch.cat((torch.full((40, 2), math.inf), stretches))
+    model = CanonicalGaussians(len(points), 0)
+    model.initialize(points, None, GaussianConfig(), lifetimes)
+    scales = model.log_scales.detach()[:, 0].exp()
+    to_others = (place - others).norm(dim=-1).sort().values[:3].mean()
+    torch.testing.assert_close(scales[40:], to_others.expand(4), rtol=1e-6, atol=0)
+    # The others: the plain rule, which counts the place once per Gaussian at it.
+    everything = (others[:, None, :] - points[None, :, :]).norm(dim=-1)
+    everything[torch.arange(40), torch.arange(40)] = math.inf  # not itself
+    plain = everything.sort(dim=1).values[:, :3].mean(dim=1)
+    torch.testing.assert_close(scales[:40], plain, rtol=1e-6, atol=0)
