@@ -112,15 +112,19 @@ def neighbour_distance(points: Float[Tensor, "P 3"], k: int) -> Float[Tensor, " 
     instead: at the 1e-7 floor such a Gaussian drew nothing, so it never had a gradient,
     kept its initial opacity and was never pruned (hfu-3cam ended with 7 553 of them, 14 %
     of its Gaussians). Every other point keeps exactly the plain distance."""
-    dist = (points[:, None, :] - points[knn(points, k)]).norm(dim=-1).mean(dim=-1)
+    dist = _mean_nearest(points, k)
     stuck = dist == 0
     if bool(stuck.any()):
         places, where = torch.unique(points, dim=0, return_inverse=True)
         if len(places) > 1:
-            near = knn(places, min(k, len(places) - 1))
-            spread = (places[:, None, :] - places[near]).norm(dim=-1).mean(dim=-1)
+            spread = _mean_nearest(places, min(k, len(places) - 1))
             dist = torch.where(stuck, spread[where], dist)
     return dist
+
+
+def _mean_nearest(points: Float[Tensor, "P 3"], k: int) -> Float[Tensor, " P"]:
+    """Each point's mean distance to its k nearest others."""
+    return (points[:, None, :] - points[knn(points, k)]).norm(dim=-1).mean(dim=-1)
 
 
 class CanonicalGaussians(nn.Module):
