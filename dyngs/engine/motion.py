@@ -251,11 +251,16 @@ class FixedCameraMotion:
 
 def model_bytes(model: DynamicGaussians, sh_degree: int | None = None) -> int:
     """Bytes a stored model needs: the Gaussians' parameters (SH bands up to `sh_degree`,
-    by default the active degree) and, when any Gaussian is dynamic, the field and head."""
+    by default the active degree), τ and σ of the temporal ones (with a bit a Gaussian to
+    say which) and, when any Gaussian is dynamic, the field and head."""
     c = model.canonical
     sh_degree = model.active_sh_degree if sh_degree is None else sh_degree
+    size = c.means.element_size()
     floats = 3 + 4 + 3 + 1 + 3 * (sh_degree + 1) ** 2  # mean, quaternion, scale, opacity, SH
-    total = len(c) * floats * c.means.element_size() + math.ceil(len(c) / 8)  # + dynamic bits
+    total = len(c) * floats * size + math.ceil(len(c) / 8)  # + dynamic bits
+    temporal = int(c.temporal().sum())
+    if temporal:
+        total += temporal * 2 * size + math.ceil(len(c) / 8)  # τ, log σ; + temporal bits
     if bool(model.dynamic.any()):
         total += sum(p.numel() * p.element_size() for p in model.field.parameters())
         total += sum(p.numel() * p.element_size() for p in model.head.parameters())

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 from pathlib import Path
 
 import pytest
@@ -143,6 +144,9 @@ def test_model_bytes_count_the_field_only_while_something_moves(tmp_path: Path) 
     model.dynamic[:] = False
     assert model_bytes(model, 0) == gaussians_only
     assert model_bytes(model, 3) == gaussians_only + n * 4 * 3 * 15
+    with torch.no_grad():  # two temporal Gaussians: their τ and σ, and the flags saying so
+        model.canonical.time_log_scales[:2] = math.log(0.1)
+    assert model_bytes(model, 0) == gaussians_only + 2 * 4 * 2 + -(-n // 8)
 
 
 def test_flags_follow_densification_and_survive_resume(tmp_path: Path) -> None:
