@@ -257,10 +257,11 @@ def model_bytes(model: DynamicGaussians, sh_degree: int | None = None) -> int:
     sh_degree = model.active_sh_degree if sh_degree is None else sh_degree
     size = c.means.element_size()
     floats = 3 + 4 + 3 + 1 + 3 * (sh_degree + 1) ** 2  # mean, quaternion, scale, opacity, SH
-    total = len(c) * floats * size + math.ceil(len(c) / 8)  # + dynamic bits
+    flags = math.ceil(len(c) / 8)  # one bit a Gaussian
+    total = len(c) * floats * size + flags  # + the dynamic flags
     temporal = int(c.temporal().sum())
     if temporal:
-        total += temporal * 2 * size + math.ceil(len(c) / 8)  # τ, log σ; + temporal bits
+        total += temporal * 2 * size + flags  # τ, log σ; + the temporal flags
     if bool(model.dynamic.any()):
         total += sum(p.numel() * p.element_size() for p in model.field.parameters())
         total += sum(p.numel() * p.element_size() for p in model.head.parameters())
