@@ -26,10 +26,12 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from dyngs.metrics import psnr as torch_psnr  # noqa: E402
 from dyngs.tools.common import write_report  # noqa: E402
 
 
@@ -51,7 +53,8 @@ def pairs(run: Path, split: str) -> list[tuple[np.ndarray, np.ndarray]]:
 
 
 def psnr(a: np.ndarray, b: np.ndarray) -> float:
-    return float(-10 * np.log10(max(float(((a - b) ** 2).mean()), 1e-12)))
+    """`dyngs.metrics.psnr` of two float32 images, as the run's own evaluation scores them."""
+    return float(torch_psnr(torch.from_numpy(a), torch.from_numpy(b)))
 
 
 def error_shares(
