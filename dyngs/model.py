@@ -24,7 +24,7 @@ from torch import Tensor, nn
 
 from dyngs.fields.base import Field, FieldSpec, Head, HeadSpec
 from dyngs.fields.heads import Deltas
-from dyngs.geometry import normalize_quaternion
+from dyngs.geometry import normalize_quaternion, quaternion_multiply, quaternion_to_rotation
 from dyngs.neighbors import knn
 from dyngs.ops import finite_rows
 from dyngs.sh import num_sh_bases, rgb_to_sh0
@@ -271,6 +271,29 @@ def activate(
     )
 
 
+def resolve_turn(
+    d: Deltas, xyz: Float[Tensor, "N 3"], quats: Float[Tensor, "N 4"], box: SceneBox
+) -> Deltas:
+    """`d` with its turn folded into additive Δμ and Δq, as every consumer of deltas reads
+    them: the point turns about the box's centre c, μ + Δμ → c + R(μ − c) + Δμ, and the
+    quaternion turns with it, q + Δq → turn ⊗ q + Δq (the same orientation once
+    normalised, since the turn is a unit quaternion)."""
+    if d.turn is None:
+        return d
+    quats = torch.where(finite_rows(quats)[:, None], quats, 0.0)  # as xyz in deltas
+    centre = xyz.new_tensor(box.center)
+    arm = xyz - centre
+    turned = (quaternion_to_rotation(d.turn) @ arm[:, :, None]).squeeze(-1)
+    dq = quaternion_multiply(d.turn, quats) - quats
+    return Deltas(
+        means=d.means + (turned - arm),
+        quats=dq if d.quats is None else dq + d.quats,
+        scales=d.scales,
+        opacities=d.opacities,
+        colors=d.colors,
+    )
+
+
 def _check_time(t: float) -> None:
     if not 0.0 <= t <= 1.0 or math.isnan(t):
         raise ValueError(f"time must be in [0, 1], got {t}")
@@ -372,7 +395,12 @@ class DynamicGaussians(nn.Module):
         xyz = means if index is None else means.index_select(0, index)
         xyz = torch.where(finite_rows(xyz)[:, None], xyz, 0.0)  # see raw_at
         times = xyz.new_full((len(xyz), 1), t)
-        return self.head(self.field(xyz, times)), index
+        d = self.head(self.field(xyz, times))
+        if d.turn is not None:
+            quats: Tensor = self.canonical.quats
+            quats = quats if index is None else quats.index_select(0, index)
+            d = resolve_turn(d, xyz, quats, self.box)
+        return d, index
 
     def any_dynamic(self) -> bool:
         return bool(self.dynamic.any())

@@ -18,6 +18,7 @@ from torch import Tensor, nn
 
 from dyngs.errors import ConfigError
 from dyngs.fields._common import init_linear_
+from dyngs.geometry import normalize_quaternion
 from dyngs.types import SceneBox
 
 
@@ -35,6 +36,10 @@ class Deltas:
     """Δ opacity logit."""
     colors: Float[Tensor, "N 3"] | None
     """Δ of the degree-0 SH coefficient (RGB)."""
+    turn: Float[Tensor, "N 4"] | None = None
+    """A unit quaternion (w, x, y, z) that turns the Gaussian about the scene box's centre,
+    its position and orientation together, before `means` and `quats` are added; the
+    model resolves it into those two (`dyngs.model.resolve_turn`). None: no turn."""
 
 
 @dataclass(frozen=True)
@@ -45,6 +50,13 @@ class DeformationHeadConfig:
     """Hidden width of the trunk and of every attribute branch (Wu et al. 2024 use 64)."""
     rotation: bool = True
     """Deform rotations (Δq)."""
+    rigid: bool = False
+    """The rotation branch turns each Gaussian about the scene box's centre (its position
+    with its orientation) instead of only adding to its quaternion, so that Δμ and the
+    turn form a rigid motion per point: an SE(3) deformation field as in Nerfies (Park et
+    al. 2021). A rigid part that turns then asks the field for one constant turn and
+    translation over the part, where a translation field needs Δμ that varies across it,
+    and its Gaussians' orientations follow its surface. Needs `rotation`."""
     scale: bool = False
     """Deform scales (Δ log-scale). Off by default, unlike Wu et al. 2024: with it, a
     Gaussian the field does not carry along shrinks out of sight (the antialiasing filter
@@ -63,6 +75,10 @@ class DeformationHeadConfig:
             raise ConfigError(
                 f"--head.width: deformation head width must be positive, got {self.width}"
             )
+        if self.rigid and not self.rotation:
+            raise ConfigError(
+                "--head.rigid turns Gaussians with the rotation branch: it needs --head.rotation"
+            )
 
     def build(
         self, in_dim: int, box: SceneBox, *, generator: torch.Generator | None = None
@@ -70,6 +86,13 @@ class DeformationHeadConfig:
         """A head reading `in_dim` field features; `box` sets the position scale (its
         half-diagonal), so that Δμ fits the scene whatever its size."""
         return DeformationHead(self, in_dim, 0.5 * box.diagonal, generator=generator)
+
+
+def turn_quaternion(v: Float[Tensor, "N 3"]) -> Float[Tensor, "N 4"]:
+    """The unit quaternion normalise(1, v/2): the identity at v = 0, a turn by 2·atan(|v|/2)
+    ≈ |v| radians about v for small v, smooth everywhere (no 0/0 at v = 0, unlike the
+    axis-angle exponential), and every turn short of a half turn reachable."""
+    return normalize_quaternion(torch.cat((torch.ones_like(v[:, :1]), 0.5 * v), dim=-1))
 
 
 def _branch(width: int, out: int, generator: torch.Generator | None) -> nn.Sequential:
@@ -122,7 +145,7 @@ class DeformationHead(nn.Module):
         w = config.width
         self.trunk = init_linear_(nn.Linear(in_dim, w), generator)
         self.means = _branch(w, 3, generator)
-        self.quats = _branch(w, 4, generator) if config.rotation else None
+        self.quats = _branch(w, 3 if config.rigid else 4, generator) if config.rotation else None
         self.scales = _branch(w, 3, generator) if config.scale else None
         self.opacities = _branch(w, 1, generator) if config.opacity else None
         self.colors = _branch(w, 3, generator) if config.color else None
@@ -131,9 +154,15 @@ class DeformationHead(nn.Module):
         if features.ndim != 2 or features.shape[1] != self.in_dim:
             raise ValueError(f"features must be [N, {self.in_dim}], got {tuple(features.shape)}")
         hidden = torch.relu(self.trunk(features))  # every branch's first layer
+        # The branches run in the order of `Deltas`' fields: that order fixes how the trunk's
+        # gradient is summed, so runs stay the same to the bit whichever head is chosen.
+        means = self.means(hidden) * self.position_scale
+        rotation = self.quats(hidden) if self.quats is not None else None
+        rigid = rotation is not None and self.config.rigid
         return Deltas(
-            means=self.means(hidden) * self.position_scale,
-            quats=self.quats(hidden) if self.quats is not None else None,
+            means=means,
+            quats=None if rigid else rotation,
+            turn=turn_quaternion(rotation) if rigid and rotation is not None else None,
             scales=self.scales(hidden) if self.scales is not None else None,
             opacities=self.opacities(hidden).squeeze(-1) if self.opacities is not None else None,
             colors=self.colors(hidden) if self.colors is not None else None,
