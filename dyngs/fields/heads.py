@@ -56,7 +56,9 @@ class DeformationHeadConfig:
     turn form a rigid motion per point: an SE(3) deformation field as in Nerfies (Park et
     al. 2021). A rigid part that turns then asks the field for one constant turn and
     translation over the part, where a translation field needs Δμ that varies across it,
-    and its Gaussians' orientations follow its surface. Needs `rotation`."""
+    and its Gaussians' orientations follow its surface. Needs `rotation`. Off by default:
+    over the MuJoCo scenes and the demo it was no measured gain on average, and it lost on
+    close_proximity in every seed (docs/ACCURACY.md, "A rigid deformation head")."""
     scale: bool = False
     """Deform scales (Δ log-scale). Off by default, unlike Wu et al. 2024: with it, a
     Gaussian the field does not carry along shrinks out of sight (the antialiasing filter
