@@ -160,11 +160,14 @@ class DeformationHead(nn.Module):
         # gradient is summed, so runs stay the same to the bit whichever head is chosen.
         means = self.means(hidden) * self.position_scale
         rotation = self.quats(hidden) if self.quats is not None else None
-        rigid = rotation is not None and self.config.rigid
+        turn = None
+        if rotation is not None and self.config.rigid:
+            turn = turn_quaternion(rotation)
+            rotation = None  # the turn replaces Δq
         return Deltas(
             means=means,
-            quats=None if rigid else rotation,
-            turn=turn_quaternion(rotation) if rigid and rotation is not None else None,
+            quats=rotation,
+            turn=turn,
             scales=self.scales(hidden) if self.scales is not None else None,
             opacities=self.opacities(hidden).squeeze(-1) if self.opacities is not None else None,
             colors=self.colors(hidden) if self.colors is not None else None,

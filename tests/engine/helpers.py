@@ -50,6 +50,18 @@ def output_layer(head: object, branch: str) -> nn.Linear | None:
     return layers[-1]
 
 
+def gradients_reaching(module: nn.Module) -> tuple[set[str], set[str]]:
+    """(every parameter's name, the set that fills with the names of those that get a
+    non-zero gradient in later backward passes; a hook on each parameter records it)."""
+    named = dict(module.named_parameters())
+    reached: set[str] = set()
+    for name, param in named.items():
+        param.register_hook(
+            lambda g, name=name: reached.add(name) if bool(g.abs().sum() > 0) else None
+        )
+    return set(named), reached
+
+
 def field_calls(field: object) -> list[int]:
     """How many points each later call of `field` is given (a forward hook appends them)."""
     assert isinstance(field, nn.Module)

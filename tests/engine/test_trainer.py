@@ -21,6 +21,7 @@ from tests.conftest import shared_scene
 from tests.engine.helpers import (
     assert_same_state,
     field_calls,
+    gradients_reaching,
     output_layer,
     tiny_config,
     tiny_trainer,
@@ -34,17 +35,12 @@ def test_gradients_reach_every_parameter_group(tmp_path: Path) -> None:
     # are in play.
     with torch.no_grad():
         trainer.model.canonical.time_log_scales[::2] = math.log(0.3)
-    named = dict(trainer.model.named_parameters())
-    reached: set[str] = set()
-    for name, param in named.items():
-        param.register_hook(
-            lambda g, name=name: reached.add(name) if bool(g.abs().sum() > 0) else None
-        )
+    named, reached = gradients_reaching(trainer.model)
     # The head's last layers start at zero, so its inner layers and the field first get a
     # gradient on the second step.
     for step in range(3):
         trainer.train_step(step)
-    assert reached == set(named), set(named) - reached
+    assert reached == named, named - reached
     assert any(n.startswith("field.grids") for n in reached)
     assert any(n.startswith("head.") for n in reached)
 

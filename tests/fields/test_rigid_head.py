@@ -17,7 +17,7 @@ from dyngs.fields.heads import Deltas, turn_quaternion
 from dyngs.geometry import normalize_quaternion, quaternion_to_rotation
 from dyngs.model import DynamicGaussians, GaussianConfig, resolve_turn
 from dyngs.types import SceneBox
-from tests.engine.helpers import output_layer, tiny_trainer
+from tests.engine.helpers import gradients_reaching, output_layer, tiny_trainer
 
 BOX = SceneBox((-1.0, 0.0, 2.0), (3.0, 2.0, 4.0))  # centre (1, 1, 3), off the origin
 
@@ -145,12 +145,7 @@ def test_a_rigid_run_trains_every_parameter_and_reloads_to_the_same_drawing(
     tmp_path: Path,
 ) -> None:
     trainer = tiny_trainer(tmp_path, warmup_iters=0, head=DeformationHeadConfig(rigid=True))
-    named = dict(trainer.model.named_parameters())
-    reached: set[str] = set()
-    for name, param in named.items():
-        param.register_hook(
-            lambda g, name=name: reached.add(name) if bool(g.abs().sum() > 0) else None
-        )
+    named, reached = gradients_reaching(trainer.model)
     for step in range(3):  # the head's inner layers get a gradient from the second step
         trainer.train_step(step)
     assert {n for n in named if n.startswith(("head.", "field."))} <= reached
