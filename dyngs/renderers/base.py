@@ -39,8 +39,15 @@ class Guards:
     """Numerical guards shared by every renderer (the table in docs/DESIGN.md)."""
 
     eps2d: float = 0.3
-    """Added to the diagonal of every 2D covariance, in px² (the low-pass filter of Kerbl et al.
-    2023)."""
+    """Added to the diagonal of every 2D covariance, in px², by the plain rule (the low-pass
+    filter of Kerbl et al. 2023, drawn at full opacity)."""
+    mip_filter: float = 0.1
+    """Takes `eps2d`'s place when the renderer is antialiased: the variance, in px², of
+    Mip-Splatting's 2D filter (Yu et al. 2024; 0.1 in its code), a Gaussian stand-in for the
+    box filter of one pixel's area (whose variance is 1/12 px²). The opacity compensation
+    keeps the filter from adding mass, so it only has to band-limit: 0.3 px² would widen
+    every Gaussian to a σ of at least 0.55 px, blurring what area-sampled images show sharp
+    (docs/ACCURACY.md, "Mip-Splatting's filter width")."""
     off_axis: float = 1.3
     """The EWA Jacobian sees x/z and y/z clamped to the image's field of view widened by
     (off_axis − 1)·tan(fov/2) on each side: ±1.3·tan(fov/2) for a centred principal point, as
@@ -53,6 +60,11 @@ class Guards:
     """Compositing stops before transmittance would fall below this."""
     quat_eps: float = 1e-12
     """Quaternions are normalised by max(|q|, quat_eps); a zero quaternion means no rotation."""
+
+    def dilation(self, antialiased: bool) -> float:
+        """The px² added to every 2D covariance's diagonal: `mip_filter` when the renderer is
+        antialiased, `eps2d` when it draws 3DGS's plain rule."""
+        return self.mip_filter if antialiased else self.eps2d
 
 
 @dataclass

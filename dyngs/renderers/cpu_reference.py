@@ -11,8 +11,9 @@ The road, per camera:
 1. `prepare` and `project` (`dyngs.renderers.stages`, shared with the other renderers
    that project in PyTorch): EWA splatting (Zwicker et al. 2001) as in 3D Gaussian
    Splatting (Kerbl et al. 2023): camera-space means, 2D covariance J W Σ Wᵀ Jᵀ with the
-   off-axis clamp, +0.3 px² dilation, culling, and a per-axis screen extent that holds
-   every pixel where α ≥ 1/255 (so binning into tiles never changes the image).
+   off-axis clamp, + 0.3 px² dilation (0.1 when antialiased), culling, and a per-axis
+   screen extent that holds every pixel where α ≥ 1/255 (so binning into tiles never
+   changes the image).
 2. `rasterize`: bin into tiles, sort each tile's Gaussians by depth, and composite front
    to back over all tiles at once, chunked so that tiles of similar depth complexity are
    padded together.
@@ -62,10 +63,11 @@ class CpuReferenceConfig:
     depend on it. None chooses 4, 8 or 16 per frame, whichever `choose_tile_size` expects
     to be fastest for the sizes of that frame's Gaussians (docs/RENDERER.md)."""
     antialiased: bool = True
-    """Mip-Splatting's 2D filter (Yu et al. 2024): scale opacity by √(det Σ / det(Σ + 0.3 I)),
-    so that the 0.3 px² dilation widens a small Gaussian without adding to its mass, as a
-    pixel that integrates light over its area sees it. On by default (docs/ACCURACY.md);
-    `--renderer.no-antialiased` draws the dilated Gaussians at full opacity, as 3DGS does."""
+    """Mip-Splatting's 2D filter (Yu et al. 2024): add its 0.1 px² (`Guards.mip_filter`) to
+    every 2D covariance and scale opacity by √(det Σ / det(Σ + 0.1 I)), which band-limits a
+    small Gaussian to the pixel grid without adding to its mass, as a pixel that integrates
+    light over its area sees it. On by default (docs/ACCURACY.md); `--renderer.no-antialiased`
+    draws 3DGS's rule instead: 0.3 px² dilation (`Guards.eps2d`) at full opacity."""
     chunk_elements: int = 1 << 20
     """Gaussian–pixel pairs composited per chunk; bounds the size of each temporary."""
 

@@ -61,10 +61,11 @@ class CpuTileConfig:
     threads: int | None = None
     """Threads the kernels use; None: PyTorch's (`torch.get_num_threads()`)."""
     antialiased: bool = True
-    """Mip-Splatting's 2D filter (Yu et al. 2024): scale opacity by √(det Σ / det(Σ + 0.3 I)),
-    so that the 0.3 px² dilation widens a small Gaussian without adding to its mass, as a
-    pixel that integrates light over its area sees it. On by default (docs/ACCURACY.md);
-    `--renderer.no-antialiased` draws the dilated Gaussians at full opacity, as 3DGS does."""
+    """Mip-Splatting's 2D filter (Yu et al. 2024): add its 0.1 px² (`Guards.mip_filter`) to
+    every 2D covariance and scale opacity by √(det Σ / det(Σ + 0.1 I)), which band-limits a
+    small Gaussian to the pixel grid without adding to its mass, as a pixel that integrates
+    light over its area sees it. On by default (docs/ACCURACY.md); `--renderer.no-antialiased`
+    draws 3DGS's rule instead: 0.3 px² dilation (`Guards.eps2d`) at full opacity."""
 
     def __post_init__(self) -> None:
         if self.tile_size < 1:
@@ -302,8 +303,9 @@ class _View:
             dtype=np.float64,
         )
         self.limits = np.array(
-            [camera.near, camera.far, guards.eps2d, guards.alpha_min, guards.quat_eps,
-             _EXTENT_RELATIVE_MARGIN, _EXTENT_ABSOLUTE_MARGIN], dtype=np.float64,
+            [camera.near, camera.far, guards.dilation(antialiased), guards.alpha_min,
+             guards.quat_eps, _EXTENT_RELATIVE_MARGIN, _EXTENT_ABSOLUTE_MARGIN],
+            dtype=np.float64,
         )  # fmt: skip
         self.antialiased = antialiased
         self.scene = scene

@@ -6,8 +6,9 @@ tests/renderers/test_cuda_tile.py and the hard cases in tests/renderers/test_har
 
 How our guards map onto gsplat (v1.4+):
 - near plane, far plane → `near_plane`, `far_plane`, and decided by `prepare` as well,
-  because gsplat culls only z < near where the guard table culls z ≤ near; 0.3 px² dilation →
-  `eps2d`; Mip-Splatting compensation → `rasterize_mode="antialiased"`.
+  because gsplat culls only z < near where the guard table culls z ≤ near; the dilation
+  (`Guards.dilation`: 0.3 px², or Mip-Splatting's 0.1 when antialiased) → `eps2d`; Mip-Splatting
+  compensation → `rasterize_mode="antialiased"`.
 - A zero quaternion is handed over as the identity (gsplat would normalise it to NaN).
 - Off-axis clamp in the EWA Jacobian: the shared rule (`stages.off_axis_limits`) is gsplat's
   own, the image's edges plus 0.3·tan(fov/2), so both draw the same footprints off screen.
@@ -53,10 +54,11 @@ class CudaTileConfig:
     tile_size: int = 16
     """Tile edge in pixels."""
     antialiased: bool = True
-    """Mip-Splatting's 2D filter (Yu et al. 2024): scale opacity by √(det Σ / det(Σ + 0.3 I)),
-    so that the 0.3 px² dilation widens a small Gaussian without adding to its mass, as a
-    pixel that integrates light over its area sees it. On by default (docs/ACCURACY.md);
-    `--renderer.no-antialiased` draws the dilated Gaussians at full opacity, as 3DGS does."""
+    """Mip-Splatting's 2D filter (Yu et al. 2024): add its 0.1 px² (`Guards.mip_filter`) to
+    every 2D covariance and scale opacity by √(det Σ / det(Σ + 0.1 I)), which band-limits a
+    small Gaussian to the pixel grid without adding to its mass, as a pixel that integrates
+    light over its area sees it. On by default (docs/ACCURACY.md); `--renderer.no-antialiased`
+    draws 3DGS's rule instead: 0.3 px² dilation (`Guards.eps2d`) at full opacity."""
     packed: bool = False
     """gsplat's packed mode: less memory for large scenes, a little slower for small ones."""
     absgrad: bool = True
@@ -107,7 +109,7 @@ class CudaTileRenderer:
             height=camera.height,
             near_plane=camera.near,
             far_plane=camera.far,
-            eps2d=self.guards.eps2d,
+            eps2d=self.guards.dilation(self.config.antialiased),
             sh_degree=g.sh_degree,
             packed=self.config.packed,
             tile_size=self.config.tile_size,

@@ -4,9 +4,9 @@ backward, in one pass over the Gaussians each.
 `stages.project` is the specification: EWA splatting (Zwicker et al. 2001) as 3DGS uses
 it (Kerbl et al. 2023), in float64, with its guards (docs/RENDERER.md): non-finite rows
 drawn as zeros and culled, depth outside (near, far) culled and its depth replaced by 1,
-the off-axis clamp in the Jacobian, +`eps2d` dilation, culling on det ≤ 0, opacity below
-`alpha_min` or a non-finite det or 2D mean, and the α ≥ `alpha_min` box. In PyTorch those
-are some sixty whole-array operations forward and as many backward, each a pass over
+the off-axis clamp in the Jacobian, the dilation (`Guards.dilation`), culling on det ≤ 0,
+opacity below `alpha_min` or a non-finite det or 2D mean, and the α ≥ `alpha_min` box. In
+PyTorch those are some sixty whole-array operations forward and as many backward, each a pass over
 memory and a dispatch; here they are one pass, and backward is the chain rule written out
 (the 3DGS backward kernels' order: conic, then 2D covariance, then 3D covariance and
 quaternion, then the mean). The parameters are first laid out by column
@@ -227,7 +227,7 @@ def project_forward(
     scene and finite: as `gather_scene` left them; view: (camera rotation, translation,
     intrinsics, limits), with intrinsics fx, fy, cx, cy, the left and top off-axis limits,
     width, height, the right and bottom off-axis limits (`off_axis_limits`), and limits
-    near, far, eps2d, alpha_min, the quaternion eps and the extent margins (relative,
+    near, far, the dilation, alpha_min, the quaternion eps and the extent margins (relative,
     absolute)."""
     n = finite.shape[0]
     for chunk in prange(-(-n // CHUNK)):

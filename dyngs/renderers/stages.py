@@ -130,7 +130,8 @@ def project(
     fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
     means2d = torch.stack((fx * x / z + cx, fy * y / z + cy), dim=-1)
     a, b, c = covariance_2d(x, y, z, ready, camera, guards)
-    a_d, c_d = a + guards.eps2d, c + guards.eps2d
+    dilation = guards.dilation(antialiased)
+    a_d, c_d = a + dilation, c + dilation
     det = a_d * c_d - b * b
     if antialiased:
         ratio = (a * c - b * b).clamp_min(0) / det.clamp_min(1e-30)

@@ -14,7 +14,8 @@ from torch import Tensor
 
 from dyngs.types import Camera, Gaussians
 
-EPS2D = 0.3  # px² added to every 2D covariance
+EPS2D = 0.3  # px² added to every 2D covariance by the plain rule (Kerbl et al. 2023)
+MIP_FILTER = 0.1  # px² added instead when antialiased (Mip-Splatting, Yu et al. 2024)
 OFF_AXIS = 1.3  # EWA Jacobian clamp: the image widened by 0.3·tan(fov/2) on each side
 ALPHA_MIN = 1.0 / 255.0  # pairs with α below this are skipped
 ALPHA_MAX = 0.99  # α is clamped to at most this
@@ -157,7 +158,8 @@ def render_oracle(
     cov2 = jw @ cov3 @ jw.transpose(1, 2)
 
     # 7. Dilation, antialiasing compensation, degenerate culling.
-    cov2d = cov2 + EPS2D * torch.eye(2, dtype=torch.float64, device=dev)
+    dilation = MIP_FILTER if antialiased else EPS2D
+    cov2d = cov2 + dilation * torch.eye(2, dtype=torch.float64, device=dev)
     det = cov2[:, 0, 0] * cov2[:, 1, 1] - cov2[:, 0, 1] * cov2[:, 1, 0]
     det_d = cov2d[:, 0, 0] * cov2d[:, 1, 1] - cov2d[:, 0, 1] * cov2d[:, 1, 0]
     keep &= det_d > 0  # a NaN determinant (overflow) also drops the Gaussian

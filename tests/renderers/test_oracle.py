@@ -47,10 +47,11 @@ def test_single_isotropic_gaussian(antialiased: bool, opacity: float) -> None:
     var = (FOCAL * s / z) ** 2  # projected variance in px²: σ_px = f·s/z = 0.5
     g = make_gaussians([0, 0, z], [s, s, s], [opacity], [[0.9, 0.5, 0.1]])
     out = render_oracle(g, make_camera(), BG, antialiased=antialiased)
-    o = opacity * (var / (var + 0.3) if antialiased else 1.0)  # sqrt(det Σ2 / det Σ2d)
+    filter_px2 = 0.1 if antialiased else 0.3  # Mip-Splatting's 2D filter; 3DGS's dilation
+    o = opacity * (var / (var + filter_px2) if antialiased else 1.0)  # sqrt(det Σ2 / det Σ2d)
     a_centre = min(0.99, o)
-    a_side = min(0.99, o * math.exp(-0.5 * 1.0 / (var + 0.3)))
-    a_diag = min(0.99, o * math.exp(-0.5 * 2.0 / (var + 0.3)))
+    a_side = min(0.99, o * math.exp(-0.5 * 1.0 / (var + filter_px2)))
+    a_diag = min(0.99, o * math.exp(-0.5 * 2.0 / (var + filter_px2)))
     assert out.alpha[CENTRE, CENTRE, 0].item() == pytest.approx(a_centre, rel=1e-14)
     for di, dj in [(0, 1), (0, -1), (1, 0), (-1, 0)]:
         assert out.alpha[CENTRE + di, CENTRE + dj, 0].item() == pytest.approx(a_side, rel=1e-12)
