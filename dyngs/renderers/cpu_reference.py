@@ -11,7 +11,7 @@ The road, per camera:
 1. `prepare` and `project` (`dyngs.renderers.stages`, shared with the other renderers
    that project in PyTorch): EWA splatting (Zwicker et al. 2001) as in 3D Gaussian
    Splatting (Kerbl et al. 2023): camera-space means, 2D covariance J W Σ Wᵀ Jᵀ with the
-   off-axis clamp, + 0.3 px² dilation (0.1 when antialiased), culling, and a per-axis
+   off-axis clamp, +0.3 px² dilation (0.1 when antialiased), culling, and a per-axis
    screen extent that holds every pixel where α ≥ 1/255 (so binning into tiles never
    changes the image).
 2. `rasterize`: bin into tiles, sort each tile's Gaussians by depth, and composite front

@@ -6,10 +6,10 @@ it (Kerbl et al. 2023), in float64, with its guards (docs/RENDERER.md): non-fini
 drawn as zeros and culled, depth outside (near, far) culled and its depth replaced by 1,
 the off-axis clamp in the Jacobian, the dilation (`Guards.dilation`), culling on det ≤ 0,
 opacity below `alpha_min` or a non-finite det or 2D mean, and the α ≥ `alpha_min` box. In
-PyTorch those are some sixty whole-array operations forward and as many backward, each a pass over
-memory and a dispatch; here they are one pass, and backward is the chain rule written out
-(the 3DGS backward kernels' order: conic, then 2D covariance, then 3D covariance and
-quaternion, then the mean). The parameters are first laid out by column
+PyTorch those are some sixty whole-array operations forward and as many backward, each a
+pass over memory and a dispatch; here they are one pass, and backward is the chain rule
+written out (the 3DGS backward kernels' order: conic, then 2D covariance, then 3D
+covariance and quaternion, then the mean). The parameters are first laid out by column
 (`gather_scene`), each Gaussian's code is straight-line, every guard a select, and a
 division is IEEE's (numba's `error_model="numpy"`; its default tests every divisor for
 zero and branches to raise, which alone made these loops ~2.5× slower); each result is
@@ -287,7 +287,7 @@ def _forward_lanes(
     rot, trans, intrinsics, limits = view
     fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
     width, height = intrinsics[6], intrinsics[7]
-    near, far, eps2d, alpha_min, quat_eps = limits[0], limits[1], limits[2], limits[3], limits[4]
+    near, far, dilation, alpha_min, quat_eps = limits[0], limits[1], limits[2], limits[3], limits[4]
     grow, margin = 1 + limits[5], limits[6]
     u_, v_, ca_, cb_, cc_, o_, z_, ex_, ey_ = lanes
     for i in range(first, end):
@@ -301,7 +301,7 @@ def _forward_lanes(
         sig = _covariance(r, scene[7, i], scene[8, i], scene[9, i])[1]
         t = _jacobian_rows(px, py, z, intrinsics, rot)[0]
         a, b, c = _project_2d(t, sig)
-        a_d, c_d = a + eps2d, c + eps2d
+        a_d, c_d = a + dilation, c + dilation
         det = a_d * c_d - b * b
         o = scene[10, i]
         if antialiased:
@@ -396,7 +396,7 @@ def _backward_lanes(
     2D covariance, the camera point and the rotation. up: the seven upstream lanes; out:
     the eleven gradient lanes (mean, quaternion, scale, opacity), indexed from `first`."""
     rot, trans, intrinsics, limits = view
-    near, far, eps2d, quat_eps = limits[0], limits[1], limits[2], limits[4]
+    near, far, dilation, quat_eps = limits[0], limits[1], limits[2], limits[4]
     for i in range(first, end):
         j = i - first
         px, py, pz = _camera_point(scene, i, rot, trans)
@@ -408,7 +408,7 @@ def _backward_lanes(
         t, tx, ty = _jacobian_rows(px, py, z, intrinsics, rot)
         cov = _project_2d(t, sig)
         upstream = (up[0][j], up[1][j], up[2][j], up[3][j], up[4][j], up[5][j], up[6][j])
-        g_cov, g_o = _conic_backward(cov, eps2d, scene[10, i], valid[i], antialiased,
+        g_cov, g_o = _conic_backward(cov, dilation, scene[10, i], valid[i], antialiased,
                                      upstream)  # fmt: skip
         g_sig, g_j = _covariance_2d_backward(g_cov, t, sig, rot)
         g_p = _point_backward(g_j, px, py, z, tx, ty, intrinsics, upstream)
@@ -426,13 +426,13 @@ def _backward_lanes(
 
 @njit(cache=True, nogil=True, inline="always")
 def _conic_backward(
-    cov: tuple, eps2d: float, o: float, good: bool, antialiased: bool, upstream: tuple
+    cov: tuple, dilation: float, o: float, good: bool, antialiased: bool, upstream: tuple
 ) -> tuple:  # pragma: no cover - compiled
     """∂L/∂(a, b, c) of the 2D covariance from the conic (c_d, −b, a_d) / det (det is the
     constant 1 on culled rows) and the antialiasing compensation; and ∂L/∂opacity. Every
     branch a select (`_backward_lanes`)."""
     a, b, c = cov
-    a_d, c_d = a + eps2d, c + eps2d
+    a_d, c_d = a + dilation, c + dilation
     det = a_d * c_d - b * b
     g_ca, g_cb, g_cc, g_o = upstream[2], upstream[3], upstream[4], upstream[5]
     d2 = det * det
