@@ -24,6 +24,7 @@ from torch import Tensor
 from dyngs.types import Camera, Gaussians
 
 __all__ = [
+    "AntialiasedConfig",
     "Camera",
     "ContributionRenderer",
     "Gaussians",
@@ -65,6 +66,19 @@ class Guards:
         """The px² added to every 2D covariance's diagonal: `mip_filter` when the renderer is
         antialiased, `eps2d` when it draws 3DGS's plain rule."""
         return self.mip_filter if antialiased else self.eps2d
+
+
+@dataclass(frozen=True)
+class AntialiasedConfig:
+    """The base of every renderer's config: the one drawing rule they all offer both ways,
+    so that its `--help` text is written once."""
+
+    antialiased: bool = True
+    """Mip-Splatting's 2D filter (Yu et al. 2024): add its 0.1 px² (`Guards.mip_filter`) to
+    every 2D covariance and scale opacity by √(det Σ / det(Σ + 0.1 I)), which band-limits a
+    small Gaussian to the pixel grid without adding to its mass, as a pixel that integrates
+    light over its area sees it. On by default (docs/ACCURACY.md); `--renderer.no-antialiased`
+    draws 3DGS's rule instead: 0.3 px² dilation (`Guards.eps2d`) at full opacity."""
 
 
 @dataclass

@@ -38,7 +38,7 @@ from torch import Tensor
 
 from dyngs.errors import ConfigError
 from dyngs.ops import gather
-from dyngs.renderers.base import Guards, RenderOutput
+from dyngs.renderers.base import AntialiasedConfig, Guards, RenderOutput
 from dyngs.renderers.stages import (
     GEOMETRY_DTYPE,
     ScreenGaussians,
@@ -55,19 +55,13 @@ _PAD_EXPONENT = -1e4
 
 
 @dataclass(frozen=True)
-class CpuReferenceConfig:
+class CpuReferenceConfig(AntialiasedConfig):
     """The pure-PyTorch tile rasterizer (any device, float32 or float64)."""
 
     tile_size: int | None = None
     """Tile edge in pixels; Gaussians are binned and depth-sorted per tile. The image does not
     depend on it. None chooses 4, 8 or 16 per frame, whichever `choose_tile_size` expects
     to be fastest for the sizes of that frame's Gaussians (docs/RENDERER.md)."""
-    antialiased: bool = True
-    """Mip-Splatting's 2D filter (Yu et al. 2024): add its 0.1 px² (`Guards.mip_filter`) to
-    every 2D covariance and scale opacity by √(det Σ / det(Σ + 0.1 I)), which band-limits a
-    small Gaussian to the pixel grid without adding to its mass, as a pixel that integrates
-    light over its area sees it. On by default (docs/ACCURACY.md); `--renderer.no-antialiased`
-    draws 3DGS's rule instead: 0.3 px² dilation (`Guards.eps2d`) at full opacity."""
     chunk_elements: int = 1 << 20
     """Gaussian–pixel pairs composited per chunk; bounds the size of each temporary."""
 

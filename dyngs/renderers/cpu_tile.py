@@ -31,7 +31,7 @@ from torch import Tensor
 
 from dyngs.compiled import numba_available, run_kernel, thread_count
 from dyngs.errors import ConfigError, RendererUnavailable
-from dyngs.renderers.base import Guards, RenderOutput
+from dyngs.renderers.base import AntialiasedConfig, Guards, RenderOutput
 from dyngs.renderers.stages import (
     _EXTENT_ABSOLUTE_MARGIN,
     _EXTENT_RELATIVE_MARGIN,
@@ -51,7 +51,7 @@ def cpu_tile_available() -> bool:
 
 
 @dataclass(frozen=True)
-class CpuTileConfig:
+class CpuTileConfig(AntialiasedConfig):
     """The compiled tile rasterizer for CPUs (numba): the same image and gradients as
     cpu-reference, drawing only the pixels inside each Gaussian's α ≥ 1/255 ellipse."""
 
@@ -60,12 +60,6 @@ class CpuTileConfig:
     stops when all its pixels have). The image does not depend on it."""
     threads: int | None = None
     """Threads the kernels use; None: PyTorch's (`torch.get_num_threads()`)."""
-    antialiased: bool = True
-    """Mip-Splatting's 2D filter (Yu et al. 2024): add its 0.1 px² (`Guards.mip_filter`) to
-    every 2D covariance and scale opacity by √(det Σ / det(Σ + 0.1 I)), which band-limits a
-    small Gaussian to the pixel grid without adding to its mass, as a pixel that integrates
-    light over its area sees it. On by default (docs/ACCURACY.md); `--renderer.no-antialiased`
-    draws 3DGS's rule instead: 0.3 px² dilation (`Guards.eps2d`) at full opacity."""
 
     def __post_init__(self) -> None:
         if self.tile_size < 1:

@@ -38,7 +38,7 @@ from torch import Tensor
 
 from dyngs.errors import RendererUnavailable
 from dyngs.geometry import normalize_quaternion
-from dyngs.renderers.base import Guards, RenderOutput
+from dyngs.renderers.base import AntialiasedConfig, Guards, RenderOutput
 from dyngs.renderers.stages import Prepared, prepare
 from dyngs.types import Camera, Gaussians
 
@@ -48,17 +48,11 @@ def cuda_tile_available() -> bool:
 
 
 @dataclass(frozen=True)
-class CudaTileConfig:
+class CudaTileConfig(AntialiasedConfig):
     """gsplat's CUDA tile rasterizer (needs an NVIDIA GPU and `pip install dyngs[cuda]`)."""
 
     tile_size: int = 16
     """Tile edge in pixels."""
-    antialiased: bool = True
-    """Mip-Splatting's 2D filter (Yu et al. 2024): add its 0.1 px² (`Guards.mip_filter`) to
-    every 2D covariance and scale opacity by √(det Σ / det(Σ + 0.1 I)), which band-limits a
-    small Gaussian to the pixel grid without adding to its mass, as a pixel that integrates
-    light over its area sees it. On by default (docs/ACCURACY.md); `--renderer.no-antialiased`
-    draws 3DGS's rule instead: 0.3 px² dilation (`Guards.eps2d`) at full opacity."""
     packed: bool = False
     """gsplat's packed mode: less memory for large scenes, a little slower for small ones."""
     absgrad: bool = True
