@@ -22,15 +22,20 @@ on Linux, where the peak can be reset after the warm-up) `--repeats` times after
 takes about ten renders to settle: its first few after compiling are up to 1.6× slower);
 `--rounds` rounds cycle through all of them in turn, so that a
 busy spell of the machine hits every renderer alike, and the medians over all rounds are
-reported. Every renderer gets `--threads` threads. Each image is compared with
+reported. On a shared machine whose pace drifts from round to round, the speed-up over
+cpu-reference is also taken within each round ("× ref by round": cpu-reference's median
+over the renderer's, both from that round), so that a slow round slows both sides of
+its own ratio. Every renderer gets `--threads` threads. Each image is compared with
 cpu-reference's (peers: the largest difference, as their rules differ in detail).
 
 The physical limit: cpu-tile counts the Gaussian–pixel pairs it draws; each costs a
 forward pass of `FORWARD_FLOPS` arithmetic operations and one exponential (backward:
 `BACKWARD_FLOPS`, one exponential, one division). The cores' rates for those are measured
 here (`measure_rates`: fused multiply-adds over in-cache float32 vectors, and NumPy's
-vectorised float32 exp, on every thread), and pairs × cost ÷ rate is the time no
-implementation of this algorithm could beat on this machine.
+vectorised float32 exp, on every thread) after every round, and the median over the
+rounds is used (one measurement of a second or so moved by 2.5× between two runs on a
+shared machine, docs/RENDERER.md); pairs × cost ÷ rate is the time no implementation of
+this algorithm could beat on this machine.
 """
 
 from __future__ import annotations
@@ -353,6 +358,7 @@ def report(args: argparse.Namespace) -> None:
     renderers = [("dyngs", name, sys.executable) for name in DYNGS]
     renderers += [("peer", name, python) for name, python in peers.items()]
     runs: dict[tuple[str, str], list[dict]] = {}
+    rates_by_round: list[dict[str, float]] = []
     for round_ in range(args.rounds):
         for case, scene, backward in cases:
             for kind, name, python in renderers:
@@ -363,16 +369,18 @@ def report(args: argparse.Namespace) -> None:
                     result.get("error") or f"{statistics.median(result['total_s']) * 1e3:.1f} ms"
                 )
                 print(f"round {round_ + 1}: {case:>14} {name:>14}: {status}", flush=True)
-    rates = measure_rates(args.threads)
+        rates_by_round.append(measure_rates(args.threads))
+    rates = {key: statistics.median(r[key] for r in rates_by_round) for key in rates_by_round[0]}
     rows = summarise(cases, renderers, runs, rates)
-    print_table(rows, rates)
+    print_table(rows, rates, rates_by_round)
     args.output.parent.mkdir(parents=True, exist_ok=True)
     memory = "glibc defaults" if args.default_malloc else "keep_freed_memory"
     settings = {"repeats": args.repeats, "warmup": args.warmup, "rounds": args.rounds,
                 "memory": memory}  # fmt: skip
     args.output.write_text(json.dumps({"machine": machine_info(), "commit": source_commit(ROOT),
                                        "threads": args.threads, "settings": settings,
-                                       "rates": rates, "rows": rows}, indent=1) + "\n")  # fmt: skip
+                                       "rates": rates, "rates_by_round": rates_by_round,
+                                       "rows": rows}, indent=1) + "\n")  # fmt: skip
     print(f"wrote {args.output}")
 
 
@@ -407,6 +415,9 @@ def summarise(cases: list, renderers: list, runs: dict, rates: dict) -> list[dic
                     cost += BACKWARD_FLOPS / rates["flops"] + 1 / rates["exps"]
                 row["pairs"] = pairs
                 row["limit_ms"] = 1e3 * pairs * cost
+            by_round = round_speedups(runs[(case, "cpu-reference")], runs[(case, name)])
+            if by_round:
+                row["speedup_by_round"] = by_round
             rows.append(row)
         add_speedups([r for r in rows if r["case"] == case])
     return rows
@@ -422,12 +433,26 @@ def add_speedups(rows: list[dict]) -> None:
             row["speedup_vs_reference"] = reference["total_ms"] / row["total_ms"]
 
 
-def print_table(rows: list[dict], rates: dict) -> None:
+def round_speedups(reference: list[dict], own: list[dict]) -> list[float]:
+    """cpu-reference's median total time over the renderer's, round by round (the i-th run
+    of each is round i), for the rounds in which both were timed."""
+    return [
+        statistics.median(ref["total_s"]) / statistics.median(mine["total_s"])
+        for ref, mine in zip(reference, own, strict=True)
+        if "total_s" in ref and "total_s" in mine
+    ]
+
+
+def print_table(rows: list[dict], rates: dict, rates_by_round: list[dict] | None = None) -> None:
     flops, exps = rates["flops"] / 1e9, rates["exps"] / 1e9
-    print(f"\nrates: {flops:.1f} GFLOP/s (float32 multiply-add), {exps:.2f} G exp/s")
-    header = ("case", "renderer", "fwd ms", "total ms", "× ref", "compos.", "× limit",
-              "max diff", "peak MB", "steady")  # fmt: skip
-    print("{:>14} {:>14} {:>9} {:>9} {:>6} {:>8} {:>8} {:>9} {:>8} {:>8}".format(*header))
+    spread = ""
+    if rates_by_round and len(rates_by_round) > 1:
+        low, high = (f(r["flops"] for r in rates_by_round) / 1e9 for f in (min, max))
+        spread = f" (median of {len(rates_by_round)} rounds, {low:.0f}-{high:.0f} GFLOP/s)"
+    print(f"\nrates: {flops:.1f} GFLOP/s (float32 multiply-add), {exps:.2f} G exp/s{spread}")
+    header = ("case", "renderer", "fwd ms", "total ms", "× ref", "by round", "compos.",
+              "× limit", "max diff", "peak MB", "steady")  # fmt: skip
+    print("{:>14} {:>14} {:>9} {:>9} {:>6} {:>11} {:>8} {:>8} {:>9} {:>8} {:>8}".format(*header))
     for r in rows:
         if "error" in r:
             print(f"{r['case']:>14} {r['renderer']:>14}  error: {r['error']}")
@@ -437,9 +462,11 @@ def print_table(rows: list[dict], rates: dict) -> None:
         composite, peak = r.get("composite_ms", math.nan), r["peak_increase_mb"]
         steady = r.get("steady_peak_increase_mb", math.nan)
         speedup = r.get("speedup_vs_reference", math.nan)
+        by_round = r.get("speedup_by_round") or [math.nan]
+        rounds = f"{min(by_round):.1f}-{max(by_round):.1f}"
         print(f"{r['case']:>14} {r['renderer']:>14} {r['forward_ms']:9.1f} {r['total_ms']:9.1f} "
-              f"{speedup:6.1f} {composite:8.1f} {ratio:8.1f} {diff:9.2g} {peak:8.0f} "
-              f"{steady:8.0f}")  # fmt: skip
+              f"{speedup:6.1f} {rounds:>11} {composite:8.1f} {ratio:8.1f} {diff:9.2g} "
+              f"{peak:8.0f} {steady:8.0f}")  # fmt: skip
 
 
 if __name__ == "__main__":

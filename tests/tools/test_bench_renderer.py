@@ -63,3 +63,12 @@ def test_speedups_are_the_reference_time_over_each_renderers() -> None:
     alone: list[dict] = [{"case": "c", "renderer": "cpu-tile", "total_ms": 5.0}]
     bench_renderer.add_speedups(alone)  # no reference timed: nothing to compare with
     assert "speedup_vs_reference" not in alone[0]
+
+
+def test_speedups_by_round_pair_each_round_with_its_own_reference() -> None:
+    reference = [{"total_s": [0.040, 0.050, 0.060]}, {"error": "failed"}, {"total_s": [0.090]}]
+    own = [{"total_s": [0.005, 0.006, 0.004]}, {"total_s": [0.005]}, {"total_s": [0.010]}]
+    # Round 1: 0.050 / 0.005; round 2 has no reference time; round 3: 0.090 / 0.010.
+    assert bench_renderer.round_speedups(reference, own) == pytest.approx([10.0, 9.0])
+    with pytest.raises(ValueError):  # the rounds of the two must line up
+        bench_renderer.round_speedups(reference, own[:2])
