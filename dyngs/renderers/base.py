@@ -70,8 +70,8 @@ class Guards:
 
 @dataclass(frozen=True)
 class AntialiasedConfig:
-    """The base of every renderer's config: the one drawing rule they all offer both ways,
-    so that its `--help` text is written once."""
+    """The base of the built-in renderers' configs: the one drawing rule they all offer both
+    ways, so that its `--help` text is written once (a plugin renderer may derive from it)."""
 
     antialiased: bool = True
     """Mip-Splatting's 2D filter (Yu et al. 2024): add its 0.1 px² (`Guards.mip_filter`) to
