@@ -3,7 +3,7 @@
 from dyngs.losses.arap import arap_loss, neighbor_weights, safe_norm
 from dyngs.losses.photometric import dssim, l1, photometric, ssim_map
 from dyngs.losses.temporal import time_l1_to_static, time_smoothness
-from dyngs.losses.tv import plane_tv
+from dyngs.losses.tv import plane_roughness, plane_tv
 
 __all__ = [
     "arap_loss",
@@ -11,6 +11,7 @@ __all__ = [
     "l1",
     "neighbor_weights",
     "photometric",
+    "plane_roughness",
     "plane_tv",
     "safe_norm",
     "ssim_map",

@@ -1,7 +1,18 @@
-"""Total variation of the spatial feature planes (K-Planes, Fridovich-Keil et al. 2023).
+"""Smoothness priors on the spatial feature planes: K-Planes' total variation
+(Fridovich-Keil et al. 2023) and its scale-free form, the planes' roughness.
 
 Letters: F feature channels, R1×R0 cells of a spatial plane ([F, R1, R0], any leading
 dimensions allowed: only the last two are plane axes).
+
+Why a scale-free form. The TV is smallest for a plane that does not vary at all, so
+besides smoothing a field it also shrinks it, and under Adam (which takes steps of the
+learning rate's size whichever term dominates a cell's gradient) a strong TV can flatten
+the deformation field before the photometric loss has taught it any motion: at 30× the
+default weight one thin_structure seed ended with every spatial plane constant to 1e-8
+and its motion carried by temporal Gaussians alone (docs/ACCURACY.md). `plane_roughness`
+divides each channel's squared neighbour differences by that channel's variance over the
+plane: a Rayleigh quotient of the grid's Laplacian, which a field lowers by varying more
+smoothly, not by varying less. Scaling a channel leaves it unchanged.
 
 Scale. K-Planes' `compute_plane_tv` is 2·(mean_h + mean_w) and K-Planes and 4DGaussians
 (Wu et al. 2024) *sum* it over planes and resolutions. Here a plane's TV is
@@ -29,4 +40,30 @@ def plane_tv(planes: list[Float[Tensor, "*F R1 R0"]]) -> Float[Tensor, ""]:
     if not planes:
         return torch.zeros(())
     per_plane = [_mean_square_step(p, -2) + _mean_square_step(p, -1) for p in planes]
+    return torch.stack(per_plane).mean()
+
+
+def _channel_steps(plane: Tensor, dim: int) -> Tensor:
+    """Per channel (all leading dimensions kept), the mean squared difference of
+    neighbouring cells along `dim` (0 if it has one cell)."""
+    if plane.shape[dim] < 2:
+        return plane.new_zeros(plane.shape[:-2])
+    return plane.diff(dim=dim).square().mean((-2, -1))
+
+
+def plane_roughness(
+    planes: list[Float[Tensor, "*F R1 R0"]], eps: float = 1e-6
+) -> Float[Tensor, ""]:
+    """Mean over planes and channels of (squared neighbour differences along both axes, as
+    `plane_tv`) ÷ (the channel's sample variance over the plane's cells + `eps`); a zero
+    tensor for an empty list. About 4 for independent noise, about (2π/R)² for a sine of one
+    period along R cells, and the same for a channel scaled by any factor: a measure of
+    how rough the features are, not how large. `eps` keeps a constant channel finite."""
+    if not planes:
+        return torch.zeros(())
+    per_plane = []
+    for p in planes:
+        steps = _channel_steps(p, -2) + _channel_steps(p, -1)
+        spread = p.flatten(-2).var(-1) if p.shape[-2] * p.shape[-1] > 1 else p.new_zeros(())
+        per_plane.append((steps / (spread + eps)).mean())
     return torch.stack(per_plane).mean()
