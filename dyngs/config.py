@@ -63,6 +63,11 @@ class LossConfig:
     No effect on other captures."""
     plane_tv: float = 1.2e-3
     """Total variation of the spatial feature planes (K-Planes)."""
+    plane_roughness: float = 0.0
+    """Roughness of the spatial feature planes: their TV divided, channel by channel, by the
+    channel's variance over the plane, so that it smooths the deformation field without
+    shrinking it (dyngs.losses.tv). Off by default: docs/ACCURACY.md measures it, with
+    `--losses.plane-tv 0`, against the TV scene by scene."""
     time_smoothness: float = 6e-2
     """Second difference of the time planes along t (K-Planes)."""
     time_l1: float = 6e-4
@@ -78,7 +83,14 @@ class LossConfig:
     def __post_init__(self) -> None:
         if not 0.0 <= self.dssim <= 1.0:
             raise ConfigError(f"--losses.dssim must be in [0, 1], got {self.dssim}")
-        for name in ("change_weight", "plane_tv", "time_smoothness", "time_l1", "arap"):
+        for name in (
+            "change_weight",
+            "plane_tv",
+            "plane_roughness",
+            "time_smoothness",
+            "time_l1",
+            "arap",
+        ):
             value = getattr(self, name)
             if not value >= 0.0:  # NaN fails too
                 flag = name.replace("_", "-")

@@ -30,7 +30,7 @@ from dyngs.fields.base import PlaneGrids
 from dyngs.losses.arap import arap_loss, neighbor_weights
 from dyngs.losses.photometric import photometric
 from dyngs.losses.temporal import time_l1_to_static, time_smoothness
-from dyngs.losses.tv import plane_tv
+from dyngs.losses.tv import plane_roughness, plane_tv
 from dyngs.model import DynamicGaussians
 from dyngs.neighbors import knn
 from dyngs.registry import Registry
@@ -66,6 +66,8 @@ def plane_terms(weights: LossConfig, planes: PlaneGrids) -> dict[str, Tensor]:
     terms: dict[str, Tensor] = {}
     if weights.plane_tv > 0 and planes.spatial:
         terms["plane_tv"] = weights.plane_tv * plane_tv(planes.spatial)
+    if weights.plane_roughness > 0 and planes.spatial:
+        terms["plane_roughness"] = weights.plane_roughness * plane_roughness(planes.spatial)
     if weights.time_smoothness > 0 and planes.temporal:
         terms["time_smoothness"] = weights.time_smoothness * time_smoothness(planes.temporal)
     if weights.time_l1 > 0 and planes.temporal:
