@@ -8,7 +8,7 @@ Why a scale-free form. The TV is smallest for a plane that does not vary at all,
 besides smoothing a field it also shrinks it, and under Adam (which takes steps of the
 learning rate's size whichever term dominates a cell's gradient) a strong TV can flatten
 the deformation field before the photometric loss has taught it any motion: at 30× the
-default weight one thin_structure seed ended with every spatial plane constant to 1e-8
+default weight one thin_structure seed ended with every spatial plane flat to within 1e-7
 and its motion carried by temporal Gaussians alone (docs/ACCURACY.md). `plane_roughness`
 divides each channel's squared neighbour differences by that channel's variance over the
 plane: a Rayleigh quotient of the grid's Laplacian, which a field lowers by varying more
