@@ -104,6 +104,14 @@ def test_plugin_preset_from_an_entry_point(tmp_path: Path, monkeypatch: pytest.M
         (["hexplane-4dgs", "--downscale", "0"], "--downscale must be ≥ 1"),
         (["hexplane-4dgs", "--losses.change-weight", "-1"], "--losses.change-weight must be ≥ 0"),
         (["hexplane-4dgs", "--losses.arap", "nan"], "--losses.arap must be ≥ 0"),
+        (
+            ["hexplane-4dgs", "--losses.plane-roughness", "-1"],
+            "--losses.plane-roughness must be ≥ 0",
+        ),
+        (
+            ["hexplane-4dgs", "--losses.plane-roughness", "nan"],
+            "--losses.plane-roughness must be ≥ 0",
+        ),
         (["hexplane-4dgs", "--losses.dssim", "1.5"], "--losses.dssim must be in [0, 1]"),
         (["hexplane-4dgs", "--losses.arap-neighbors", "0"], "--losses.arap-neighbors must be ≥ 1"),
         (["hexplane-4dgs", "--data", "/no/such/folder"], "/no/such/folder: does not exist"),
