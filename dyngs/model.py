@@ -14,6 +14,7 @@ checkpoint without the dataset or an optimizer, and `model.at(t)` needs nothing 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -22,6 +23,7 @@ import torch
 from jaxtyping import Bool, Float, Int
 from torch import Tensor, nn
 
+from dyngs.errors import ConfigError
 from dyngs.fields.base import Field, FieldSpec, Head, HeadSpec
 from dyngs.fields.heads import Deltas
 from dyngs.geometry import normalize_quaternion, quaternion_multiply, quaternion_to_rotation
@@ -81,6 +83,20 @@ class GaussianConfig:
     """Initial points beyond this many are subsampled (seeded). None: the data-sized
     Gaussian budget (dyngs/engine/capacity.py), so that a dense or random cloud never starts a
     scene above what it needs."""
+    filter_3d: float = 0.0
+    """Mip-Splatting's 3D smoothing filter (Yu et al. 2024, whose s = 0.2 this is): each
+    Gaussian is drawn convolved with an isotropic Gaussian of variance s/ν², where ν is
+    the finest sampling rate (focal length ÷ depth, pixels per world unit) of any training
+    view that drew it, with its opacity scaled to keep its mass. A Gaussian finer than
+    its views can resolve is otherwise free to shrink to a needle or a speck that fits
+    those views' pixels and aliases everywhere else. ν is measured on every training step
+    and the filter refreshed every `--densify.refine-every` steps (`set_filter`); it is
+    saved with the model, so evaluation draws as training did. 0: no filter; 0.2 is
+    Mip-Splatting's."""
+
+    def __post_init__(self) -> None:
+        if not (self.filter_3d >= 0.0 and math.isfinite(self.filter_3d)):
+            raise ConfigError(f"--gaussians.filter-3d must be ≥ 0 and finite, got {self.filter_3d}")
 
 
 def _logit(p: float) -> float:
@@ -271,6 +287,25 @@ def activate(
     )
 
 
+def smooth_3d(
+    scales: Float[Tensor, "N 3"], opacities: Float[Tensor, " N"], std: Float[Tensor, " N"]
+) -> tuple[Float[Tensor, "N 3"], Float[Tensor, " N"]]:
+    """Each Gaussian convolved with an isotropic one of standard deviation `std`: variances
+    add, s'ᵢ = √(sᵢ² + std²), and the opacity is scaled by Πᵢ sᵢ/s'ᵢ = √(det Σ / det Σ'),
+    so that the blob keeps the mass it had (Mip-Splatting's 3D filter, Yu et al. 2024).
+    `hypot` neither overflows nor underflows, and each factor is in (0, 1]. Rows with a
+    non-finite scale or a zero `std` are returned as they are (the renderer culls the
+    former), so that neither NaN values nor NaN gradients come from the filter."""
+    keep = (std <= 0) | ~torch.isfinite(scales).all(dim=-1) | ~torch.isfinite(std)
+    safe = torch.where(keep[:, None], 1.0, scales)
+    widened = torch.hypot(safe, torch.where(keep, 1.0, std)[:, None])
+    factor = (safe / widened).prod(dim=-1)
+    return (
+        torch.where(keep[:, None], scales, widened),
+        torch.where(keep, opacities, opacities * factor),
+    )
+
+
 def resolve_turn(
     d: Deltas, xyz: Float[Tensor, "N 3"], quats: Float[Tensor, "N 4"], box: SceneBox
 ) -> Deltas:
@@ -309,9 +344,12 @@ class DynamicGaussians(nn.Module):
     `active_sh_degree` is the SH degree drawn with (it rises during training) and
     `deforming` whether the deformation is on (off during the static warm-up); both are
     saved in the state_dict with the scene box, so `at(t)` draws what training drew.
+    `filter_std` is each Gaussian's 3D smoothing filter (`smooth_3d`; zero: none), a
+    buffer for the same reason.
     """
 
     dynamic: Tensor
+    filter_std: Tensor
     field: Field
 
     def __init__(self, canonical: CanonicalGaussians, field: Field, head: Head, box: SceneBox):
@@ -321,6 +359,7 @@ class DynamicGaussians(nn.Module):
         self.head = head
         self.box = box
         self.register_buffer("dynamic", torch.ones(len(canonical), dtype=torch.bool))
+        self.register_buffer("filter_std", torch.zeros(len(canonical)))
         self.active_sh_degree = 0
         self.deforming = True
 
@@ -449,16 +488,47 @@ class DynamicGaussians(nn.Module):
         degree = self.active_sh_degree if sh_degree is None else sh_degree
         c = self.canonical
         presence = c.temporal_factor(t) if bool(c.temporal().any()) else None
-        return activate(
+        g = activate(
             raw["means"], raw["quats"], raw["log_scales"], raw["opacity_logits"], sh, degree,
             presence,
         )  # fmt: skip
+        if not self.filtered:
+            return g
+        scales, opacities = smooth_3d(g.scales, g.opacities, self.filter_std.to(g.scales))
+        return dataclasses.replace(g, scales=scales, opacities=opacities)
+
+    @property
+    def filtered(self) -> bool:
+        """Whether any Gaussian is drawn through a 3D smoothing filter."""
+        return bool((self.filter_std > 0).any())
+
+    @torch.no_grad()
+    def set_filter(self, rates: Float[Tensor, " N"], strength: float) -> None:
+        """Mip-Splatting's 3D filter from each Gaussian's finest sampling rate ν (pixels per
+        world unit; 0 where not measured): standard deviation √strength / ν. A Gaussian
+        with no rate keeps its filter; one that never had any gets the widest in use
+        (the coarsest rate), as Yu et al. do for Gaussians no training view sees."""
+        if rates.shape != self.filter_std.shape:
+            raise ValueError(f"{tuple(rates.shape)} rates for {len(self.filter_std)} Gaussians")
+        seen = (rates > 0) & torch.isfinite(rates)
+        if not bool(seen.any()):
+            return
+        std = math.sqrt(strength) / torch.where(seen, rates, 1.0).to(self.filter_std)
+        kept = torch.where(seen, std, self.filter_std)
+        widest = kept[seen | (kept > 0)].max()
+        self.filter_std.copy_(torch.where(kept > 0, kept, widest))
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):  # type: ignore[no-untyped-def]
         if prefix + "dynamic" in state_dict:  # the checkpoint's Gaussian count
             self.dynamic = torch.empty_like(state_dict[prefix + "dynamic"])
+            # Models saved before the 3D filter existed were trained and drawn without one.
+            filter_std = state_dict.setdefault(
+                prefix + "filter_std", torch.zeros(len(self.dynamic))
+            )
+            self.filter_std = torch.empty_like(filter_std)
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def on_topology(self, source: Int[Tensor, " M"], fresh: Bool[Tensor, " M"]) -> None:
-        # New Gaussians inherit their source's dynamic flag.
+        # New Gaussians inherit their source's dynamic flag and 3D filter.
         self.dynamic = self.dynamic[source]
+        self.filter_std = self.filter_std[source]

@@ -112,6 +112,18 @@ def test_plugin_preset_from_an_entry_point(tmp_path: Path, monkeypatch: pytest.M
             ["hexplane-4dgs", "--losses.plane-roughness", "nan"],
             "--losses.plane-roughness must be ≥ 0",
         ),
+        (
+            ["hexplane-4dgs", "--gaussians.filter-3d", "-1"],
+            "--gaussians.filter-3d must be ≥ 0 and finite",
+        ),
+        (
+            ["hexplane-4dgs", "--gaussians.filter-3d", "nan"],
+            "--gaussians.filter-3d must be ≥ 0 and finite",
+        ),
+        (
+            ["hexplane-4dgs", "--gaussians.filter-3d", "inf"],
+            "--gaussians.filter-3d must be ≥ 0 and finite",
+        ),
         (["hexplane-4dgs", "--losses.dssim", "1.5"], "--losses.dssim must be in [0, 1]"),
         (["hexplane-4dgs", "--losses.arap-neighbors", "0"], "--losses.arap-neighbors must be ≥ 1"),
         (["hexplane-4dgs", "--data", "/no/such/folder"], "/no/such/folder: does not exist"),

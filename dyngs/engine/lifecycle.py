@@ -5,10 +5,13 @@ After each good step (`after_step`), in this order:
    static, static ones where something moves become dynamic;
 2. **SH degree**: at each interval it may rise by one, when the frozen band's gradient
    asks for it (or on schedule, `--gaussians.sh-evidence 0`);
-3. **refinement** (`dyngs.engine.densify`): the importance of every Gaussian is measured
+3. **3D filter**: every `refine_every` steps, each Gaussian's smoothing filter is set
+   from the finest sampling rate of the views that drew it since the last refresh
+   (Mip-Splatting, `GaussianConfig.filter_3d`);
+4. **refinement** (`dyngs.engine.densify`): the importance of every Gaussian is measured
    on the time window's views, then Gaussians are cloned, split and pruned within the
    budget, and every owner of per-Gaussian data follows the change;
-4. **opacity reset** (3DGS), with Adam's moments of the opacities cleared.
+5. **opacity reset** (3DGS), with Adam's moments of the opacities cleared.
 
 At the end (`finish`): a last motion revisit, then the field is cut to the span of the
 dynamic Gaussians. The schedule of all of this is `dyngs.engine.schedules`; the state it
@@ -38,6 +41,7 @@ from dyngs.engine.densify import (
     plan_refinement,
     probe_band,
     reset_opacity_logits,
+    sampling_rates,
     view_statistics,
 )
 from dyngs.engine.distributed import SINGLE, ProcessGroup
@@ -144,6 +148,9 @@ class Lifecycle:
         if schedules.is_motion_step(cfg, step):
             self.revisit_motion(step)
         self.consider_sh_degree(step)
+        if schedules.is_filter_step(cfg, step):
+            self.model.set_filter(self.state.sampling_rate, cfg.gaussians.filter_3d)
+            self.state.sampling_rate.zero_()
         if schedules.is_refine_step(cfg, step):
             self.refine(step, optimizer, renderer)
         if schedules.is_reset_step(cfg, step):
@@ -321,12 +328,14 @@ def densify_statistics(
     lifecycle: Lifecycle,
     out: RenderOutput,
     camera: Camera,
+    means: Tensor,
     means_grad: Tensor | None,
     time: float,
     views: int,
 ) -> StepStatistics | None:
     """A view's densification statistics (`densify.view_statistics`) under the lifecycle's
-    config. A renderer that cannot measure the absolute gradient makes the run densify by
+    config, with the sampling rates of the drawn `means` when the 3D filter is on. A
+    renderer that cannot measure the absolute gradient makes the run densify by
     the gradient against its own threshold (`lifecycle.config` changes), said once."""
     config = lifecycle.config
     if config.densify.absgrad and out.means2d_absgrad is None:
@@ -338,5 +347,6 @@ def densify_statistics(
             highlight=False,
             markup=False,
         )
+    rates = sampling_rates(means, camera, out.visible) if config.gaussians.filter_3d > 0 else None
     return view_statistics(out, camera.width, camera.height, means_grad, time, views,
-                           config.densify.absgrad)  # fmt: skip
+                           config.densify.absgrad, rates)  # fmt: skip

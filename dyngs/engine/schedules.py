@@ -110,6 +110,19 @@ def is_refine_step(config: TrainConfig, step: int) -> bool:
     return within and step % d.refine_every == 0 and step > 0
 
 
+def is_filter_step(config: TrainConfig, step: int) -> bool:
+    """Whether the 3D filter is refreshed after `step` steps: every `refine_every` steps,
+    but not within the last `refine_every`, so that the run ends trained on the filter it
+    keeps (Mip-Splatting's schedule, Yu et al. 2024)."""
+    every = config.densify.refine_every
+    return (
+        config.gaussians.filter_3d > 0
+        and step > 0
+        and step % every == 0
+        and step <= config.steps - every
+    )
+
+
 def budget_at(config: TrainConfig, step: int) -> int:
     """The Gaussian cap at `step`: a quarter of the budget when densification starts, growing
     linearly to all of it by the end of the densification window."""

@@ -274,7 +274,8 @@ class Trainer:
         means_grad = backward_view(loss if views == 1 else loss / views, model.canonical.means)
         if means_grad is not None:  # as the step's gradient will be (quarantine_nonfinite…)
             means_grad = means_grad.masked_fill(~model.canonical.finite_rows()[:, None], 0.0)
-        stats = densify_statistics(self.lifecycle, out, batch.camera, means_grad, batch.time, views)
+        stats = densify_statistics(self.lifecycle, out, batch.camera, gaussians.means, means_grad,
+                                   batch.time, views)  # fmt: skip
         return ViewResult(loss.detach(), {k: v.detach() for k, v in terms.items()}, out, batch,
                           stats)  # fmt: skip
 

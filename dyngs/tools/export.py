@@ -27,7 +27,7 @@ from torch import Tensor
 
 from dyngs.errors import ConfigError, DatasetError
 from dyngs.geometry import normalize_quaternion
-from dyngs.model import DRAWN_PARAMS
+from dyngs.model import DRAWN_PARAMS, smooth_3d
 from dyngs.ply import read_ply, write_ply
 from dyngs.runs import LoadedRun, RunOverrides, load_run
 from dyngs.sh import num_sh_bases
@@ -130,6 +130,15 @@ def export_raw(run: LoadedRun, t: float, sh_degree: int | None = None) -> dict[s
         opacity = torch.sigmoid(raw["opacity_logits"].double()) * presence.double()
         folded = (opacity.log() - torch.log1p(-opacity)).to(raw["opacity_logits"].dtype)
         raw["opacity_logits"] = torch.where(presence < 1, folded, raw["opacity_logits"])
+    if run.model.filtered:  # as drawn: the 3D filter folded into scales and opacities
+        scales, opacity = smooth_3d(
+            raw["log_scales"].double().exp(),
+            torch.sigmoid(raw["opacity_logits"].double()),
+            run.model.filter_std.double(),
+        )
+        raw["log_scales"] = scales.log().to(raw["log_scales"].dtype)
+        logits = opacity.log() - torch.log1p(-opacity)
+        raw["opacity_logits"] = logits.to(raw["opacity_logits"].dtype)
     raw["quats"] = unit_quaternions(raw["quats"])
     rest = raw["sh_rest"][:, : num_sh_bases(degree) - 1]
     rest[:, max(num_sh_bases(run.model.active_sh_degree) - 1, 0) :] = 0.0

@@ -8,11 +8,13 @@ from pathlib import Path
 import pytest
 import torch
 
+from dyngs.cli import main as cli_main
 from dyngs.model import DRAWN_PARAMS, GAUSSIAN_PARAMS, activate
 from dyngs.ply import read_ply
 from dyngs.runs import load_run
 from dyngs.tools.export import export_raw, main, read_gaussians_ply, write_gaussians_ply
 from tests.engine.helpers import TINY_SCENE, output_layer
+from tests.tools.conftest import TINY_FLAGS
 
 
 def _random_raw(n: int, rest: int, seed: int = 0) -> dict[str, torch.Tensor]:
@@ -88,6 +90,27 @@ def test_export_at_time_matches_the_model(tiny_run: Path, tmp_path: Path) -> Non
     assert torch.allclose(torch.sigmoid(back["opacity_logits"]), drawn.opacities)
     assert torch.allclose(back["quats"].norm(dim=1), torch.ones(len(back["quats"])))
     assert back["sh_rest"].shape[1] == 15  # the model's full degree, 3, as viewers expect
+
+
+def test_an_export_holds_the_gaussians_as_drawn_through_the_3d_filter(
+    tiny_data: Path, tmp_path: Path
+) -> None:
+    cli_main(
+        ["hexplane-4dgs", "renderer:cpu-reference", "--data", str(tiny_data),
+         "--output-dir", str(tmp_path), "--run-name", "run", "--max-iters", "12",
+         "--densify.refine-every", "5", "--gaussians.filter-3d", "0.2", *TINY_FLAGS]
+    )  # fmt: skip
+    run = load_run(tmp_path / "run")
+    assert run.model.filtered  # refreshed at step 5 (not at 10: within the last interval)
+    raw = export_raw(run, 0.5)
+    drawn = run.model.at(0.5)
+    torch.testing.assert_close(raw["log_scales"].exp(), drawn.scales, rtol=1e-6, atol=0)
+    torch.testing.assert_close(torch.sigmoid(raw["opacity_logits"]), drawn.opacities,
+                               rtol=1e-5, atol=1e-8)  # fmt: skip
+    plain = export_raw(run, 0.5)
+    run.model.filter_std.zero_()
+    unfiltered = export_raw(run, 0.5)
+    assert bool((plain["log_scales"] > unfiltered["log_scales"]).all())
 
 
 def test_unused_sh_coefficients_are_zero(tiny_run: Path) -> None:
