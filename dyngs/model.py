@@ -87,12 +87,12 @@ class GaussianConfig:
     """Mip-Splatting's 3D smoothing filter (Yu et al. 2024, whose s = 0.2 this is): each
     Gaussian is drawn convolved with an isotropic Gaussian of variance s/ν², where ν is
     the finest sampling rate (focal length ÷ depth, pixels per world unit) of any training
-    view that drew it, with its opacity scaled to keep its mass. A Gaussian finer than
+    view that can draw it, with its opacity scaled to keep its mass. A Gaussian finer than
     its views can resolve is otherwise free to shrink to a needle or a speck that fits
-    those views' pixels and aliases everywhere else. ν is measured on every training step
-    and the filter refreshed every `--densify.refine-every` steps (`set_filter`); it is
-    saved with the model, so evaluation draws as training did. 0: no filter; 0.2 is
-    Mip-Splatting's."""
+    those views' pixels and aliases everywhere else. The filter is set from all training
+    views when the run starts and every `--densify.refine-every` steps (`set_filter`);
+    it is saved with the model, so evaluation draws as training did. 0: no filter; 0.2
+    is Mip-Splatting's."""
 
     def __post_init__(self) -> None:
         if not (self.filter_3d >= 0.0 and math.isfinite(self.filter_3d)):
@@ -505,18 +505,17 @@ class DynamicGaussians(nn.Module):
     @torch.no_grad()
     def set_filter(self, rates: Float[Tensor, " N"], strength: float) -> None:
         """Mip-Splatting's 3D filter from each Gaussian's finest sampling rate ν (pixels per
-        world unit; 0 where not measured): standard deviation √strength / ν. A Gaussian
-        with no rate keeps its filter; one that never had any gets the widest in use
-        (the coarsest rate), as Yu et al. do for Gaussians no training view sees."""
+        world unit; 0 where no training view can draw it): standard deviation
+        √strength / ν, and for the unseen the widest in use (the coarsest rate's), as Yu
+        et al. 2024 do. No rate at all leaves the filter as it is."""
         if rates.shape != self.filter_std.shape:
             raise ValueError(f"{tuple(rates.shape)} rates for {len(self.filter_std)} Gaussians")
         seen = (rates > 0) & torch.isfinite(rates)
         if not bool(seen.any()):
             return
-        std = math.sqrt(strength) / torch.where(seen, rates, 1.0).to(self.filter_std)
-        kept = torch.where(seen, std, self.filter_std)
-        widest = kept[seen | (kept > 0)].max()
-        self.filter_std.copy_(torch.where(kept > 0, kept, widest))
+        coarsest = rates[seen].min()
+        finest = torch.where(seen, rates, coarsest).to(self.filter_std)
+        self.filter_std.copy_(math.sqrt(strength) / finest)
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):  # type: ignore[no-untyped-def]
         if prefix + "dynamic" in state_dict:  # the checkpoint's Gaussian count

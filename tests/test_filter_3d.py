@@ -14,9 +14,9 @@ import torch
 
 from dyngs.config import TrainConfig
 from dyngs.engine import schedules
-from dyngs.engine.densify import sampling_rates
+from dyngs.engine.lifecycle import sampling_rates
 from dyngs.geometry import normalize_quaternion, quaternion_to_rotation
-from dyngs.model import GaussianConfig, smooth_3d
+from dyngs.model import DynamicGaussians, GaussianConfig, smooth_3d
 from dyngs.types import Camera
 from tests.engine.helpers import tiny_config, tiny_trainer
 
@@ -94,15 +94,24 @@ def _camera(fx: float, fy: float, eye_z: float) -> Camera:
     return Camera(fx=fx, fy=fy, cx=16.0, cy=16.0, world_to_camera=w2c, width=32, height=32)
 
 
-def test_sampling_rate_is_focal_over_depth_where_drawn() -> None:
-    means = torch.tensor([[0.0, 0.0, 0.0], [0.1, -0.2, 2.0], [0.0, 0.0, -5.0], [0.0, 0.0, 0.0]])
-    drawn = torch.tensor([True, True, True, False])
-    rates = sampling_rates(means, _camera(40.0, 50.0, 3.0), drawn)
-    # depths 3, 5, -2 (behind: no rate), and an undrawn one; the finer focal length counts
-    torch.testing.assert_close(rates, torch.tensor([50.0 / 3, 10.0, 0.0, 0.0]))
+def test_sampling_rate_is_focal_over_depth_where_the_view_can_draw() -> None:
+    means = torch.tensor(
+        [
+            [0.0, 0.0, 0.0],  # depth 3
+            [0.1, -0.2, 2.0],  # depth 5
+            [0.0, 0.0, -5.0],  # behind the camera
+            [0.0, 0.0, 0.0],  # too faint to draw a pixel
+            [2.0, 0.0, 0.0],  # projects to x = 16 + 50·2/3 ≈ 49 > 32·1.15: outside
+            [1.0, 0.0, 0.0],  # x ≈ 32.7: beyond the edge, within the 15 % margin
+        ]
+    )
+    opacities = torch.tensor([0.5, 0.5, 0.5, 0.5 / 255, 0.5, 0.5])
+    rates = sampling_rates(means, opacities, _camera(40.0, 50.0, 3.0))
+    # the finer focal length counts: 50
+    torch.testing.assert_close(rates, torch.tensor([50 / 3, 10.0, 0.0, 0.0, 0.0, 50 / 3]))
 
 
-def test_set_filter_sizes_by_the_finest_rate_and_keeps_what_it_did_not_measure(
+def test_set_filter_sizes_by_the_finest_rate_and_gives_the_unseen_the_widest(
     tmp_path: Path,
 ) -> None:
     model = tiny_trainer(tmp_path).model
@@ -112,14 +121,10 @@ def test_set_filter_sizes_by_the_finest_rate_and_keeps_what_it_did_not_measure(
     model.set_filter(rates, 0.2)
     std = model.filter_std
     torch.testing.assert_close(std[: n // 2], math.sqrt(0.2) / rates[: n // 2])
-    # never measured: the widest filter in use (the coarsest rate's)
-    assert bool((std[n // 2 :] == math.sqrt(0.2) / 10.0).all())
+    assert bool((std[n // 2 :] == math.sqrt(0.2) / 10.0).all())  # the coarsest rate's
     before = std.clone()
-    later = torch.zeros(n)
-    later[0] = 40.0  # one Gaussian measured again, closer
-    model.set_filter(later, 0.2)
-    assert float(model.filter_std[0]) == pytest.approx(math.sqrt(0.2) / 40.0)
-    assert torch.equal(model.filter_std[1:], before[1:])
+    model.set_filter(torch.zeros(n), 0.2)  # nothing seen: nothing to go by
+    assert torch.equal(model.filter_std, before)
     with pytest.raises(ValueError, match="rates for"):
         model.set_filter(torch.ones(n + 1), 0.2)
 
@@ -166,25 +171,42 @@ def test_the_filter_is_refreshed_every_refinement_interval_but_not_at_the_end(
     assert [s for s in range(steps + 1) if schedules.is_filter_step(config, s)] == due
 
 
-def test_training_sets_the_filter_from_the_views_and_evaluation_keeps_it(tmp_path: Path) -> None:
+def _finest_by_hand(model: DynamicGaussians, poses: list[tuple[Camera, float]]) -> torch.Tensor:
+    """The finest rate over the poses, the model drawn afresh for each one."""
+    rates = torch.zeros(len(model.canonical))
+    with torch.no_grad():
+        for camera, t in poses:
+            raw = model.raw_at(t)
+            opacities = torch.sigmoid(raw["opacity_logits"]) * model.canonical.temporal_factor(t)
+            rates = torch.maximum(rates, sampling_rates(raw["means"], opacities, camera))
+    return rates
+
+
+def test_training_sets_the_filter_from_every_training_view_and_a_resume_keeps_it(
+    tmp_path: Path,
+) -> None:
     densify = dataclasses.replace(tiny_config().densify, refine_every=10)
     trainer = tiny_trainer(tmp_path, max_iters=25, densify=densify, gaussians=FILTERED)
-    camera_rates = [max(c.fx, c.fy) for c in trainer.scene.train.cameras]
+    poses = trainer.data.train_poses()
+    assert len({t for _, t in poses}) < len(poses)  # times with several views: grouped
+    refreshed = []
     for step in range(25):
+        before = trainer.model.filter_std.clone()
         trainer.train_step(step)
-        assert trainer.model.filtered == (step + 1 >= 10), step
-    std = trainer.model.filter_std
-    assert bool((std > 0).all())
-    # Every camera of the procedural scene looks at the origin from outside the Gaussians'
-    # box: ν is at most the longest focal over the nearest depth, and the filter's
-    # standard deviation at least √0.2 over it.
-    depths = torch.stack([c.world_to_camera[2, 3] for c in trainer.scene.train.cameras])
-    nearest = float(depths.min()) - float(trainer.model.canonical.means.detach().norm(dim=1).max())
-    assert float(std.min()) >= math.sqrt(0.2) * nearest / max(camera_rates) * (1 - 1e-6)
+        if not torch.equal(trainer.model.filter_std, before):
+            refreshed.append(step)
+        if step == 9:  # refreshed after this step (10 steps done): what every view asks
+            rates = _finest_by_hand(trainer.model, poses)
+            seen = rates > 0
+            assert 0 < int(seen.sum()) <= len(rates)
+            expected = math.sqrt(0.2) / torch.where(seen, rates, rates[seen].min())
+            torch.testing.assert_close(trainer.model.filter_std, expected, rtol=1e-6, atol=0)
+    # before the first step, after 10 steps; not after 20, within the last 10 of 25
+    assert refreshed == [0, 9]
     trainer.save()
     resumed = tiny_trainer(tmp_path / "resumed", max_iters=25, densify=densify, gaussians=FILTERED)
     resumed.load(trainer.checkpoint_path())
-    assert torch.equal(resumed.model.filter_std, std)
+    assert torch.equal(resumed.model.filter_std, trainer.model.filter_std)
     assert torch.equal(resumed.model.at(0.5).scales, trainer.model.at(0.5).scales)
 
 

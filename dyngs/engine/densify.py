@@ -23,7 +23,6 @@ from dyngs.errors import ConfigError
 from dyngs.geometry import normalize_quaternion, quaternion_to_rotation
 from dyngs.model import GAUSSIAN_PARAMS, DynamicGaussians
 from dyngs.renderers.base import RenderOutput
-from dyngs.types import Camera
 
 
 @dataclass(frozen=True)
@@ -113,9 +112,6 @@ class DensifyState:
     7 coefficients per channel)."""
     sh_pull_norm: Float[Tensor, " N"]
     """Σ over views of that gradient's norm."""
-    sampling_rate: Float[Tensor, " N"]
-    """The finest sampling rate (focal ÷ depth) of the views that drew it since the 3D
-    filter's last refresh (`schedules.is_filter_step`); 0: none did."""
 
     @staticmethod
     def zeros(n: int, device: torch.device) -> DensifyState:
@@ -123,7 +119,7 @@ class DensifyState:
             return torch.zeros(n, *shape, device=device)
 
         return DensifyState(
-            zeros(), zeros(), zeros(), zeros(), zeros(3), zeros(), zeros(7, 3), zeros(), zeros()
+            zeros(), zeros(), zeros(), zeros(), zeros(3), zeros(), zeros(7, 3), zeros()
         )
 
     def state_dict(self) -> dict[str, Tensor]:
@@ -157,7 +153,6 @@ _STATE_NAMES = (
     "pull_norm",
     "sh_pull",
     "sh_pull_norm",
-    "sampling_rate",
 )
 
 
@@ -192,41 +187,25 @@ class StepStatistics:
     max_radius: Float[Tensor, " N"]
     importance: Float[Tensor, " N"]
     """+inf where a view did not measure it (never prune by what was not measured)."""
-    sampling_rate: Float[Tensor, " N"]
-    """Focal length ÷ depth where drawn (`sampling_rates`), else 0."""
 
     def sums(self) -> list[Tensor]:
         return [self.grad_sum, self.count, self.pull, self.pull_norm]
 
     def maxima(self) -> list[Tensor]:
-        return [self.max_radius, self.importance, self.sampling_rate]
+        return [self.max_radius, self.importance]
 
     @staticmethod
     def zeros(n: int, device: torch.device) -> StepStatistics:
         """Nothing seen: the identity of `combine` (every statistic is ≥ 0)."""
         z = torch.zeros(n, device=device)
         return StepStatistics(z, z.clone(), torch.zeros(n, 3, device=device), z.clone(),
-                              z.clone(), z.clone(), z.clone())  # fmt: skip
+                              z.clone(), z.clone())  # fmt: skip
 
     def combine(self, other: StepStatistics) -> StepStatistics:
         """Both views' statistics: sums added, maxima kept."""
         summed = [a + b for a, b in zip(self.sums(), other.sums(), strict=True)]
         largest = [torch.maximum(a, b) for a, b in zip(self.maxima(), other.maxima(), strict=True)]
         return StepStatistics(*summed, *largest)
-
-
-def sampling_rates(
-    means: Float[Tensor, "N 3"], camera: Camera, drawn: Bool[Tensor, " N"]
-) -> Float[Tensor, " N"]:
-    """How finely the camera samples space at each drawn Gaussian: focal length ÷ depth,
-    in pixels per world unit (the larger focal length, should pixels not be square);
-    0 where it is not drawn (Mip-Splatting's ν, Yu et al. 2024)."""
-    with torch.no_grad():
-        w2c = camera.world_to_camera.to(means)
-        depth = means.detach() @ w2c[2, :3] + w2c[2, 3]
-        rate = max(camera.fx, camera.fy) / depth
-        keep = drawn & (depth > 0) & torch.isfinite(rate)
-        return torch.where(keep, rate, 0.0).to(torch.get_default_dtype())
 
 
 def view_statistics(
@@ -237,13 +216,11 @@ def view_statistics(
     time: float = 0.5,
     views: int = 1,
     absgrad: bool = False,
-    rates: Tensor | None = None,
 ) -> StepStatistics | None:
     """One view's screen-space gradients, and the canonical means' gradient at its time
     (call after backward; None when nothing reached the screen). With the loss averaged
     over `views` views, gradients are scaled back to one view's, as gsplat does for
-    batches, so that `--densify.grad-threshold` keeps its meaning. `rates` are the view's
-    `sampling_rates` (None: not measured, zeros)."""
+    batches, so that `--densify.grad-threshold` keeps its meaning."""
     grad = out.means2d.grad
     if grad is None:
         return None
@@ -267,9 +244,8 @@ def view_statistics(
         if means_grad is not None:
             pull = means_grad.to(norm.dtype) * (time - 0.5)
             pull_norm = pull.norm(dim=-1)
-        rate = zeros if rates is None else rates.to(norm.dtype)
         return StepStatistics(torch.where(seen, norm, 0), seen.to(norm.dtype), pull, pull_norm,
-                              torch.where(seen, radius, 0), importance, rate)  # fmt: skip
+                              torch.where(seen, radius, 0), importance)  # fmt: skip
 
 
 def add_statistics(state: DensifyState, stats: StepStatistics) -> None:
@@ -279,7 +255,6 @@ def add_statistics(state: DensifyState, stats: StepStatistics) -> None:
         state.count += stats.count.to(state.count.dtype)
         state.max_radius.copy_(torch.maximum(state.max_radius, stats.max_radius))
         state.importance.copy_(torch.maximum(state.importance, stats.importance))
-        state.sampling_rate.copy_(torch.maximum(state.sampling_rate, stats.sampling_rate))
         state.pull += stats.pull.to(state.pull.dtype)
         state.pull_norm += stats.pull_norm.to(state.pull_norm.dtype)
 

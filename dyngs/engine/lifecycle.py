@@ -6,8 +6,8 @@ After each good step (`after_step`), in this order:
 2. **SH degree**: at each interval it may rise by one, when the frozen band's gradient
    asks for it (or on schedule, `--gaussians.sh-evidence 0`);
 3. **3D filter**: every `refine_every` steps, each Gaussian's smoothing filter is set
-   from the finest sampling rate of the views that drew it since the last refresh
-   (Mip-Splatting, `GaussianConfig.filter_3d`);
+   from the finest sampling rate of the training views that can draw it
+   (Mip-Splatting, `GaussianConfig.filter_3d`; also once when the run starts);
 4. **refinement** (`dyngs.engine.densify`): the importance of every Gaussian is measured
    on the time window's views, then Gaussians are cloned, split and pruned within the
    budget, and every owner of per-Gaussian data follows the change;
@@ -27,6 +27,7 @@ from collections.abc import Callable
 from functools import cached_property
 
 import torch
+from jaxtyping import Float
 from rich.console import Console
 from torch import Tensor
 
@@ -41,7 +42,6 @@ from dyngs.engine.densify import (
     plan_refinement,
     probe_band,
     reset_opacity_logits,
-    sampling_rates,
     view_statistics,
 )
 from dyngs.engine.distributed import SINGLE, ProcessGroup
@@ -50,7 +50,7 @@ from dyngs.engine.optim import replace_params
 from dyngs.engine.writer import Writer
 from dyngs.fields.base import Croppable
 from dyngs.model import DynamicGaussians
-from dyngs.renderers.base import ContributionRenderer, Renderer, RenderOutput
+from dyngs.renderers.base import ContributionRenderer, Guards, Renderer, RenderOutput
 from dyngs.types import Camera, Gaussians
 
 
@@ -93,6 +93,7 @@ class Lifecycle:
         self.device = model.canonical.means.device
         self.state = DensifyState.zeros(len(model.canonical), self.device)
         self.importance_seconds = 0.0
+        self.filter_seconds = 0.0
         self.motion_times = sample_times(data.scene.train.times, config.motion.samples)
 
     # ------------------------------------------------------------ during a step
@@ -149,8 +150,7 @@ class Lifecycle:
             self.revisit_motion(step)
         self.consider_sh_degree(step)
         if schedules.is_filter_step(cfg, step):
-            self.model.set_filter(self.state.sampling_rate, cfg.gaussians.filter_3d)
-            self.state.sampling_rate.zero_()
+            self.refresh_filter()
         if schedules.is_refine_step(cfg, step):
             self.refine(step, optimizer, renderer)
         if schedules.is_reset_step(cfg, step):
@@ -215,6 +215,21 @@ class Lifecycle:
         largest_shares(self.model, renderer, mine, self.data.background, importance)
         self.group.max_([importance])
         return importance
+
+    def refresh_filter(self) -> None:
+        """Set every Gaussian's 3D filter (`DynamicGaussians.set_filter`) from the finest
+        sampling rate of any training view that can draw it, as Mip-Splatting does
+        over all of its training cameras (Yu et al. 2024). Each time's deformation is
+        run once for its views; the views are shared out and the maxima exchanged."""
+        strength = self.config.gaussians.filter_3d
+        if strength <= 0:
+            return
+        started = time.perf_counter()
+        rates = torch.zeros(len(self.model.canonical), device=self.device)
+        finest_sampling_rates(self.model, self.group.share(self.data.train_poses()), rates)
+        self.group.max_([rates])
+        self.model.set_filter(rates, strength)
+        self.filter_seconds += time.perf_counter() - started
 
     # ------------------------------------------------------------ static / dynamic
 
@@ -293,13 +308,18 @@ class Lifecycle:
     # ------------------------------------------------------------ checkpoints
 
     def state_dict(self) -> dict[str, object]:
-        return {"densify": self.state.state_dict(), "importance_seconds": self.importance_seconds}
+        return {
+            "densify": self.state.state_dict(),
+            "importance_seconds": self.importance_seconds,
+            "filter_seconds": self.filter_seconds,
+        }
 
     def load_state_dict(self, state: dict[str, object]) -> None:
         densify = state["densify"]
         assert isinstance(densify, dict)
         self.state = DensifyState.from_state_dict(densify)
         self.importance_seconds = float(state.get("importance_seconds", 0.0))  # type: ignore[arg-type]
+        self.filter_seconds = float(state.get("filter_seconds", 0.0))  # type: ignore[arg-type]
 
     def _say(self, line: str) -> None:
         self.console.print(line, highlight=False, markup=False)
@@ -324,18 +344,61 @@ def largest_shares(
         torch.maximum(importance, out.contribution.to(importance.dtype), out=importance)
 
 
+FRUSTUM_MARGIN = 0.15
+"""A Gaussian counts as seen by a view when its centre projects within this fraction of
+the image's size beyond its edges (Mip-Splatting's margin, Yu et al. 2024)."""
+
+
+def sampling_rates(
+    means: Float[Tensor, "N 3"], opacities: Float[Tensor, " N"], camera: Camera
+) -> Float[Tensor, " N"]:
+    """How finely the camera samples space at each Gaussian it can draw: focal length ÷
+    depth, in pixels per world unit (the larger focal length, should pixels not be
+    square); 0 for a Gaussian behind the near plane, outside the frustum (with
+    `FRUSTUM_MARGIN`) or too faint to draw any pixel (opacity under the renderers'
+    1/255). Mip-Splatting's ν (Yu et al. 2024)."""
+    w2c = camera.world_to_camera.to(means)
+    local = means @ w2c[:3, :3].T + w2c[:3, 3]
+    depth = local[:, 2]
+    safe = torch.where(depth > camera.near, depth, 1.0)
+    x = camera.fx * local[:, 0] / safe + camera.cx
+    y = camera.fy * local[:, 1] / safe + camera.cy
+    mx, my = FRUSTUM_MARGIN * camera.width, FRUSTUM_MARGIN * camera.height
+    seen = (depth > camera.near) & (opacities >= Guards.alpha_min)
+    seen &= (x >= -mx) & (x <= camera.width + mx) & (y >= -my) & (y <= camera.height + my)
+    return torch.where(seen, max(camera.fx, camera.fy) / safe, 0.0)
+
+
+@torch.no_grad()
+def finest_sampling_rates(
+    model: DynamicGaussians, poses: list[tuple[Camera, float]], rates: Tensor
+) -> None:
+    """Raise `rates` in place to each Gaussian's `sampling_rates` in every pose's view, the
+    model as it draws at the pose's time (deformed when it deforms; its temporal opacity
+    there), before any 3D filter. The poses come in time order: one deformation a time."""
+    canonical = model.canonical
+    drawn: tuple[float, Tensor, Tensor] | None = None
+    for camera, t in poses:
+        if drawn is None or drawn[0] != t:
+            raw = model.raw_at(t)
+            opacities = torch.sigmoid(raw["opacity_logits"])
+            if bool(canonical.temporal().any()):
+                opacities = opacities * canonical.temporal_factor(t)
+            drawn = (t, raw["means"], opacities)
+        rate = sampling_rates(drawn[1], drawn[2], camera).to(rates.dtype)
+        torch.maximum(rates, rate, out=rates)
+
+
 def densify_statistics(
     lifecycle: Lifecycle,
     out: RenderOutput,
     camera: Camera,
-    means: Tensor,
     means_grad: Tensor | None,
     time: float,
     views: int,
 ) -> StepStatistics | None:
     """A view's densification statistics (`densify.view_statistics`) under the lifecycle's
-    config, with the sampling rates of the drawn `means` when the 3D filter is on. A
-    renderer that cannot measure the absolute gradient makes the run densify by
+    config. A renderer that cannot measure the absolute gradient makes the run densify by
     the gradient against its own threshold (`lifecycle.config` changes), said once."""
     config = lifecycle.config
     if config.densify.absgrad and out.means2d_absgrad is None:
@@ -347,6 +410,5 @@ def densify_statistics(
             highlight=False,
             markup=False,
         )
-    rates = sampling_rates(means, camera, out.visible) if config.gaussians.filter_3d > 0 else None
     return view_statistics(out, camera.width, camera.height, means_grad, time, views,
-                           config.densify.absgrad, rates)  # fmt: skip
+                           config.densify.absgrad)  # fmt: skip

@@ -115,6 +115,7 @@ def run_summary(
     step: int,
     device: torch.device,
     importance_seconds: float,
+    filter_seconds: float = 0.0,
 ) -> dict[str, object]:
     """What metrics.json says of a finished run besides its image metrics."""
     return {
@@ -123,6 +124,7 @@ def run_summary(
         "static_scene": config.motion.separate and not model.any_dynamic(),
         "train_seconds": counters.train_seconds,
         "importance_seconds": importance_seconds,
+        "filter_seconds": filter_seconds,
         "iterations": step,
         "skipped_steps": counters.skipped_steps,
         "renderer": renderer_name(config.renderer),

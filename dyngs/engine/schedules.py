@@ -113,7 +113,7 @@ def is_refine_step(config: TrainConfig, step: int) -> bool:
 def is_filter_step(config: TrainConfig, step: int) -> bool:
     """Whether the 3D filter is refreshed after `step` steps: every `refine_every` steps,
     but not within the last `refine_every`, so that the run ends trained on the filter it
-    keeps (Mip-Splatting's schedule, Yu et al. 2024)."""
+    keeps (Mip-Splatting's schedule, Yu et al. 2024). It is also set before step 0."""
     every = config.densify.refine_every
     return (
         config.gaussians.filter_3d > 0

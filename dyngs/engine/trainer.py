@@ -230,6 +230,8 @@ class Trainer:
         cfg, model = self.config, self.model
         set_learning_rates(self.optimizer, *schedules.learning_progress(cfg, step))
         model.deforming = schedules.deforming(cfg, step)
+        if step == 0:  # Mip-Splatting sizes the 3D filter of the initial Gaussians too
+            self.lifecycle.refresh_filter()
         picks = self.next_views(step)
         probe = self.lifecycle.probe_degree()
         others = self.group.share(self.objective.other_times(model, cfg.batch_views))
@@ -274,8 +276,7 @@ class Trainer:
         means_grad = backward_view(loss if views == 1 else loss / views, model.canonical.means)
         if means_grad is not None:  # as the step's gradient will be (quarantine_nonfinite…)
             means_grad = means_grad.masked_fill(~model.canonical.finite_rows()[:, None], 0.0)
-        stats = densify_statistics(self.lifecycle, out, batch.camera, gaussians.means, means_grad,
-                                   batch.time, views)  # fmt: skip
+        stats = densify_statistics(self.lifecycle, out, batch.camera, means_grad, batch.time, views)
         return ViewResult(loss.detach(), {k: v.detach() for k, v in terms.items()}, out, batch,
                           stats)  # fmt: skip
 
@@ -386,6 +387,7 @@ class Trainer:
         self.nonfinite_culled.zero_()
         extra = {
             "train/importance_seconds": self.lifecycle.importance_seconds,
+            "train/filter_seconds": self.lifecycle.filter_seconds,
             "train/iterations_per_second": rate,
             "train/nonfinite_gaussians_culled": culled,
         }
@@ -397,7 +399,8 @@ class Trainer:
         metrics = evaluate(self.model, self.renderer, self.data, split, self.run_dir / split,
                            self.device, self.console)  # fmt: skip
         metrics |= run_summary(self.model, self.counters, self.config, self.step, self.device,
-                               self.lifecycle.importance_seconds)  # fmt: skip
+                               self.lifecycle.importance_seconds,
+                               self.lifecycle.filter_seconds)  # fmt: skip
         write_metrics(self.writer, split, metrics, self.step)
         return metrics
 
