@@ -14,7 +14,7 @@ import torch
 
 from dyngs.config import TrainConfig
 from dyngs.engine import schedules
-from dyngs.engine.lifecycle import sampling_rates
+from dyngs.engine.smoothing import sampling_rates
 from dyngs.geometry import normalize_quaternion, quaternion_to_rotation
 from dyngs.model import DynamicGaussians, GaussianConfig, smooth_3d
 from dyngs.types import Camera
@@ -189,20 +189,24 @@ def test_training_sets_the_filter_from_every_training_view_and_a_resume_keeps_it
     trainer = tiny_trainer(tmp_path, max_iters=25, densify=densify, gaussians=FILTERED)
     poses = trainer.data.train_poses()
     assert len({t for _, t in poses}) < len(poses)  # times with several views: grouped
+
+    def assert_asked_by_every_view() -> None:
+        rates = _finest_by_hand(trainer.model, poses)
+        seen = rates > 0
+        assert 0 < int(seen.sum()) <= len(rates)
+        expected = math.sqrt(0.2) / torch.where(seen, rates, rates[seen].min())
+        torch.testing.assert_close(trainer.model.filter_std, expected, rtol=1e-6, atol=0)
+
+    assert_asked_by_every_view()  # the initial Gaussians' filter, before any step
     refreshed = []
     for step in range(25):
         before = trainer.model.filter_std.clone()
         trainer.train_step(step)
         if not torch.equal(trainer.model.filter_std, before):
             refreshed.append(step)
-        if step == 9:  # refreshed after this step (10 steps done): what every view asks
-            rates = _finest_by_hand(trainer.model, poses)
-            seen = rates > 0
-            assert 0 < int(seen.sum()) <= len(rates)
-            expected = math.sqrt(0.2) / torch.where(seen, rates, rates[seen].min())
-            torch.testing.assert_close(trainer.model.filter_std, expected, rtol=1e-6, atol=0)
-    # before the first step, after 10 steps; not after 20, within the last 10 of 25
-    assert refreshed == [0, 9]
+        if step == 9:  # refreshed after this step (10 steps done)
+            assert_asked_by_every_view()
+    assert refreshed == [9]  # after 10 steps; not after 20, within the last 10 of 25
     trainer.save()
     resumed = tiny_trainer(tmp_path / "resumed", max_iters=25, densify=densify, gaussians=FILTERED)
     resumed.load(trainer.checkpoint_path())

@@ -27,7 +27,6 @@ from collections.abc import Callable
 from functools import cached_property
 
 import torch
-from jaxtyping import Float
 from rich.console import Console
 from torch import Tensor
 
@@ -47,10 +46,11 @@ from dyngs.engine.densify import (
 from dyngs.engine.distributed import SINGLE, ProcessGroup
 from dyngs.engine.motion import FixedCameraMotion, model_bytes, revisit, sample_times
 from dyngs.engine.optim import replace_params
+from dyngs.engine.smoothing import refresh_filter
 from dyngs.engine.writer import Writer
 from dyngs.fields.base import Croppable
 from dyngs.model import DynamicGaussians
-from dyngs.renderers.base import ContributionRenderer, Guards, Renderer, RenderOutput
+from dyngs.renderers.base import ContributionRenderer, Renderer, RenderOutput
 from dyngs.types import Camera, Gaussians
 
 
@@ -150,7 +150,9 @@ class Lifecycle:
             self.revisit_motion(step)
         self.consider_sh_degree(step)
         if schedules.is_filter_step(cfg, step):
-            self.refresh_filter()
+            poses = self.group.share(self.data.train_poses())
+            self.filter_seconds += refresh_filter(self.model, poses, cfg.gaussians.filter_3d,
+                                                  self.group)  # fmt: skip
         if schedules.is_refine_step(cfg, step):
             self.refine(step, optimizer, renderer)
         if schedules.is_reset_step(cfg, step):
@@ -216,21 +218,6 @@ class Lifecycle:
         self.group.max_([importance])
         return importance
 
-    def refresh_filter(self) -> None:
-        """Set every Gaussian's 3D filter (`DynamicGaussians.set_filter`) from the finest
-        sampling rate of any training view that can draw it, as Mip-Splatting does
-        over all of its training cameras (Yu et al. 2024). Each time's deformation is
-        run once for its views; the views are shared out and the maxima exchanged."""
-        strength = self.config.gaussians.filter_3d
-        if strength <= 0:
-            return
-        started = time.perf_counter()
-        rates = torch.zeros(len(self.model.canonical), device=self.device)
-        finest_sampling_rates(self.model, self.group.share(self.data.train_poses()), rates)
-        self.group.max_([rates])
-        self.model.set_filter(rates, strength)
-        self.filter_seconds += time.perf_counter() - started
-
     # ------------------------------------------------------------ static / dynamic
 
     @cached_property
@@ -282,37 +269,20 @@ class Lifecycle:
         """A last motion revisit (measured motion alone), then the field crop."""
         if self.config.motion.separate and schedules.deforming(self.config, step):
             self.revisit_motion(step, final=True)
-        self.crop_field(optimizer)
-
-    def crop_field(self, optimizer: torch.optim.Optimizer) -> None:
-        """Cut the field to the span of the Gaussians that query it, once they stop moving
-        (the end of training); Adam's moments are cut alike, so a resumed run goes on."""
-        model = self.model
-        field = model.field
-        crops = self.config.motion.crop_field and isinstance(field, Croppable)
-        if not crops or not model.any_dynamic():
-            return
-        assert isinstance(field, Croppable)
-        before = model_bytes(model)
-        old = list(field.parameters())
-        with torch.no_grad():
-            remap = field.crop_to(model.canonical.means[model.dynamic])
-        if remap is None:
-            return
-        replace_params(optimizer, old, list(field.parameters()), remap)
-        self._say(
-            f"[motion] field cut to the span of the dynamic Gaussians: model "
-            f"{before / 2**20:.2f} → {model_bytes(model) / 2**20:.2f} MiB"
-        )
+        if self.config.motion.crop_field and (said := crop_field(self.model, optimizer)):
+            self._say(said)
 
     # ------------------------------------------------------------ checkpoints
 
-    def state_dict(self) -> dict[str, object]:
+    def seconds(self) -> dict[str, float]:
+        """Time spent in the passes over every training view: importance, 3D filter."""
         return {
-            "densify": self.state.state_dict(),
             "importance_seconds": self.importance_seconds,
             "filter_seconds": self.filter_seconds,
         }
+
+    def state_dict(self) -> dict[str, object]:
+        return {"densify": self.state.state_dict(), **self.seconds()}
 
     def load_state_dict(self, state: dict[str, object]) -> None:
         densify = state["densify"]
@@ -323,6 +293,26 @@ class Lifecycle:
 
     def _say(self, line: str) -> None:
         self.console.print(line, highlight=False, markup=False)
+
+
+def crop_field(model: DynamicGaussians, optimizer: torch.optim.Optimizer) -> str | None:
+    """Cut the field to the span of the Gaussians that query it, once they stop moving
+    (the end of training); Adam's moments are cut alike, so a resumed run goes on.
+    Returns what to say of it (None: nothing was cut)."""
+    field = model.field
+    if not isinstance(field, Croppable) or not model.any_dynamic():
+        return None
+    before = model_bytes(model)
+    old = list(field.parameters())
+    with torch.no_grad():
+        remap = field.crop_to(model.canonical.means[model.dynamic])
+    if remap is None:
+        return None
+    replace_params(optimizer, old, list(field.parameters()), remap)
+    return (
+        f"[motion] field cut to the span of the dynamic Gaussians: model "
+        f"{before / 2**20:.2f} → {model_bytes(model) / 2**20:.2f} MiB"
+    )
 
 
 @torch.no_grad()
@@ -342,51 +332,6 @@ def largest_shares(
         out = renderer.with_contribution(drawn[1], camera, background)
         assert out.contribution is not None
         torch.maximum(importance, out.contribution.to(importance.dtype), out=importance)
-
-
-FRUSTUM_MARGIN = 0.15
-"""A Gaussian counts as seen by a view when its centre projects within this fraction of
-the image's size beyond its edges (Mip-Splatting's margin, Yu et al. 2024)."""
-
-
-def sampling_rates(
-    means: Float[Tensor, "N 3"], opacities: Float[Tensor, " N"], camera: Camera
-) -> Float[Tensor, " N"]:
-    """How finely the camera samples space at each Gaussian it can draw: focal length ÷
-    depth, in pixels per world unit (the larger focal length, should pixels not be
-    square); 0 for a Gaussian behind the near plane, outside the frustum (with
-    `FRUSTUM_MARGIN`) or too faint to draw any pixel (opacity under the renderers'
-    1/255). Mip-Splatting's ν (Yu et al. 2024)."""
-    w2c = camera.world_to_camera.to(means)
-    local = means @ w2c[:3, :3].T + w2c[:3, 3]
-    depth = local[:, 2]
-    safe = torch.where(depth > camera.near, depth, 1.0)
-    x = camera.fx * local[:, 0] / safe + camera.cx
-    y = camera.fy * local[:, 1] / safe + camera.cy
-    mx, my = FRUSTUM_MARGIN * camera.width, FRUSTUM_MARGIN * camera.height
-    seen = (depth > camera.near) & (opacities >= Guards.alpha_min)
-    seen &= (x >= -mx) & (x <= camera.width + mx) & (y >= -my) & (y <= camera.height + my)
-    return torch.where(seen, max(camera.fx, camera.fy) / safe, 0.0)
-
-
-@torch.no_grad()
-def finest_sampling_rates(
-    model: DynamicGaussians, poses: list[tuple[Camera, float]], rates: Tensor
-) -> None:
-    """Raise `rates` in place to each Gaussian's `sampling_rates` in every pose's view, the
-    model as it draws at the pose's time (deformed when it deforms; its temporal opacity
-    there), before any 3D filter. The poses come in time order: one deformation a time."""
-    canonical = model.canonical
-    drawn: tuple[float, Tensor, Tensor] | None = None
-    for camera, t in poses:
-        if drawn is None or drawn[0] != t:
-            raw = model.raw_at(t)
-            opacities = torch.sigmoid(raw["opacity_logits"])
-            if bool(canonical.temporal().any()):
-                opacities = opacities * canonical.temporal_factor(t)
-            drawn = (t, raw["means"], opacities)
-        rate = sampling_rates(drawn[1], drawn[2], camera).to(rates.dtype)
-        torch.maximum(rates, rate, out=rates)
 
 
 def densify_statistics(

@@ -114,7 +114,7 @@ def run_summary(
     config: TrainConfig,
     step: int,
     device: torch.device,
-    importance_seconds: float,
+    importance_seconds: float = 0.0,
     filter_seconds: float = 0.0,
 ) -> dict[str, object]:
     """What metrics.json says of a finished run besides its image metrics."""

@@ -47,6 +47,7 @@ from dyngs.engine.lifecycle import Lifecycle, densify_statistics
 from dyngs.engine.objective import Objective
 from dyngs.engine.optim import build_optimizer, set_learning_rates
 from dyngs.engine.report import Counters, StepStats, log_step, run_summary, write_metrics
+from dyngs.engine.smoothing import refresh_filter, time_ordered_poses
 from dyngs.engine.writer import Writer
 from dyngs.errors import ConfigError, UserError
 from dyngs.model import CanonicalGaussians, DynamicGaussians, subsample_points
@@ -88,7 +89,8 @@ def initial_model(
     config: TrainConfig, scene: SceneData, generator: torch.Generator
 ) -> DynamicGaussians:
     """The model at step 0: a Gaussian at each of the scene's initial points (subsampled
-    to the budget), the field and head drawn from `generator`."""
+    to the budget), the field and head drawn from `generator`, and their 3D filter sized
+    by the training views (as Mip-Splatting does when it creates its Gaussians)."""
     points, colors, lifetimes = subsample_points(
         scene.points, scene.point_colors, config.gaussians.max_init_points, generator,
         scene.point_lifetimes,
@@ -98,6 +100,8 @@ def initial_model(
     )
     model.canonical.initialize(points, colors, config.gaussians, lifetimes)
     model.deforming = schedules.deforming(config, 0)
+    if config.gaussians.filter_3d > 0:
+        refresh_filter(model, time_ordered_poses(scene.train), config.gaussians.filter_3d)
     return model
 
 
@@ -230,8 +234,6 @@ class Trainer:
         cfg, model = self.config, self.model
         set_learning_rates(self.optimizer, *schedules.learning_progress(cfg, step))
         model.deforming = schedules.deforming(cfg, step)
-        if step == 0:  # Mip-Splatting sizes the 3D filter of the initial Gaussians too
-            self.lifecycle.refresh_filter()
         picks = self.next_views(step)
         probe = self.lifecycle.probe_degree()
         others = self.group.share(self.objective.other_times(model, cfg.batch_views))
@@ -386,8 +388,7 @@ class Trainer:
         culled = int(self.nonfinite_culled)
         self.nonfinite_culled.zero_()
         extra = {
-            "train/importance_seconds": self.lifecycle.importance_seconds,
-            "train/filter_seconds": self.lifecycle.filter_seconds,
+            **{f"train/{name}": value for name, value in self.lifecycle.seconds().items()},
             "train/iterations_per_second": rate,
             "train/nonfinite_gaussians_culled": culled,
         }
@@ -399,8 +400,7 @@ class Trainer:
         metrics = evaluate(self.model, self.renderer, self.data, split, self.run_dir / split,
                            self.device, self.console)  # fmt: skip
         metrics |= run_summary(self.model, self.counters, self.config, self.step, self.device,
-                               self.lifecycle.importance_seconds,
-                               self.lifecycle.filter_seconds)  # fmt: skip
+                               **self.lifecycle.seconds())  # fmt: skip
         write_metrics(self.writer, split, metrics, self.step)
         return metrics
 
