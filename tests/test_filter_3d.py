@@ -14,7 +14,7 @@ import torch
 
 from dyngs.config import TrainConfig
 from dyngs.engine import schedules
-from dyngs.engine.smoothing import sampling_rates
+from dyngs.engine.smoothing import PRESENT, finest_sampling_rates, sampling_rates
 from dyngs.geometry import normalize_quaternion, quaternion_to_rotation
 from dyngs.model import DynamicGaussians, GaussianConfig, smooth_3d
 from dyngs.types import Camera
@@ -94,19 +94,19 @@ def _camera(fx: float, fy: float, eye_z: float) -> Camera:
     return Camera(fx=fx, fy=fy, cx=16.0, cy=16.0, world_to_camera=w2c, width=32, height=32)
 
 
-def test_sampling_rate_is_focal_over_depth_where_the_view_can_draw() -> None:
+def test_sampling_rate_is_focal_over_depth_where_the_view_sees_a_present_gaussian() -> None:
     means = torch.tensor(
         [
             [0.0, 0.0, 0.0],  # depth 3
             [0.1, -0.2, 2.0],  # depth 5
             [0.0, 0.0, -5.0],  # behind the camera
-            [0.0, 0.0, 0.0],  # too faint to draw a pixel
+            [0.0, 0.0, 0.0],  # not present at the view's time
             [2.0, 0.0, 0.0],  # projects to x = 16 + 50·2/3 ≈ 49 > 32·1.15: outside
             [1.0, 0.0, 0.0],  # x ≈ 32.7: beyond the edge, within the 15 % margin
         ]
     )
-    opacities = torch.tensor([0.5, 0.5, 0.5, 0.5 / 255, 0.5, 0.5])
-    rates = sampling_rates(means, opacities, _camera(40.0, 50.0, 3.0))
+    present = torch.tensor([True, True, True, False, True, True])
+    rates = sampling_rates(means, present, _camera(40.0, 50.0, 3.0))
     # the finer focal length counts: 50
     torch.testing.assert_close(rates, torch.tensor([50 / 3, 10.0, 0.0, 0.0, 0.0, 50 / 3]))
 
@@ -176,9 +176,8 @@ def _finest_by_hand(model: DynamicGaussians, poses: list[tuple[Camera, float]]) 
     rates = torch.zeros(len(model.canonical))
     with torch.no_grad():
         for camera, t in poses:
-            raw = model.raw_at(t)
-            opacities = torch.sigmoid(raw["opacity_logits"]) * model.canonical.temporal_factor(t)
-            rates = torch.maximum(rates, sampling_rates(raw["means"], opacities, camera))
+            present = model.canonical.temporal_factor(t) > PRESENT
+            rates = torch.maximum(rates, sampling_rates(model.raw_at(t)["means"], present, camera))
     return rates
 
 
@@ -219,3 +218,23 @@ def test_no_filter_trains_without_one(tmp_path: Path) -> None:
     for step in range(12):
         trainer.train_step(step)
     assert not trainer.model.filtered
+
+
+def test_a_temporal_gaussian_counts_only_for_views_of_its_time_whatever_its_opacity(
+    tmp_path: Path,
+) -> None:
+    trainer = tiny_trainer(tmp_path)
+    model, poses = trainer.model, trainer.data.train_poses()
+    c = model.canonical
+    half = len(c) // 2
+    with torch.no_grad():
+        c.time_centers[:half] = 0.0  # alive around t = 0 only (presence e^-200 at t = 1)
+        c.time_log_scales[:half] = math.log(0.05)
+        c.opacity_logits[half:] = -12.0  # the others nearly transparent: still counted
+    late = [(camera, t) for camera, t in poses if t == 1.0]
+    early = [(camera, t) for camera, t in poses if t == 0.0]
+    assert late and early
+    rates_late = finest_sampling_rates(model, late)
+    in_view = rates_late[half:] > 0
+    assert bool((rates_late[:half] == 0).all()) and bool(in_view.any())
+    assert bool((finest_sampling_rates(model, early)[:half] > 0).any())

@@ -11,13 +11,12 @@ import time
 from collections.abc import Sequence
 
 import torch
-from jaxtyping import Float
+from jaxtyping import Bool, Float
 from torch import Tensor
 
 from dyngs.datamanagers.base import Split
 from dyngs.engine.distributed import SINGLE, ProcessGroup
 from dyngs.model import DynamicGaussians
-from dyngs.renderers.base import Guards
 from dyngs.types import Camera
 
 FRUSTUM_MARGIN = 0.15
@@ -25,14 +24,21 @@ FRUSTUM_MARGIN = 0.15
 the image's size beyond its edges (Mip-Splatting's margin, Yu et al. 2024)."""
 
 
+PRESENT = 0.05
+"""A temporal Gaussian counts for a view when its temporal presence (the factor on its
+opacity) at the view's time exceeds this. The rule reads when a Gaussian exists, not
+its learned opacity: an opacity reset lowers every opacity at once, and the filter
+scales the drawn opacity down itself, so a rule on opacity fed back into the filter
+(texture lost about 1 dB a seed with one, docs/ACCURACY.md)."""
+
+
 def sampling_rates(
-    means: Float[Tensor, "N 3"], opacities: Float[Tensor, " N"], camera: Camera
+    means: Float[Tensor, "N 3"], present: Bool[Tensor, " N"], camera: Camera
 ) -> Float[Tensor, " N"]:
-    """How finely the camera samples space at each Gaussian it can draw: focal length ÷
+    """How finely the camera samples space at each present Gaussian: focal length ÷
     depth, in pixels per world unit (the larger focal length, should pixels not be
     square); 0 for a Gaussian behind the near plane, outside the frustum (with
-    `FRUSTUM_MARGIN`) or too faint to draw any pixel (opacity under the renderers'
-    1/255). Mip-Splatting's ν (Yu et al. 2024)."""
+    `FRUSTUM_MARGIN`) or not present. Mip-Splatting's ν (Yu et al. 2024)."""
     w2c = camera.world_to_camera.to(means)
     local = means @ w2c[:3, :3].T + w2c[:3, 3]
     depth = local[:, 2]
@@ -40,7 +46,7 @@ def sampling_rates(
     x = camera.fx * local[:, 0] / safe + camera.cx
     y = camera.fy * local[:, 1] / safe + camera.cy
     mx, my = FRUSTUM_MARGIN * camera.width, FRUSTUM_MARGIN * camera.height
-    seen = (depth > camera.near) & (opacities >= Guards.alpha_min)
+    seen = (depth > camera.near) & present
     seen &= (x >= -mx) & (x <= camera.width + mx) & (y >= -my) & (y <= camera.height + my)
     return torch.where(seen, max(camera.fx, camera.fy) / safe, 0.0)
 
@@ -50,18 +56,18 @@ def finest_sampling_rates(
     model: DynamicGaussians, poses: Sequence[tuple[Camera, float]]
 ) -> Float[Tensor, " N"]:
     """Each Gaussian's finest `sampling_rates` over the poses' views, the model as it draws
-    at each pose's time (deformed when it deforms; its temporal opacity there), before
-    any 3D filter. Poses in time order run one deformation a time."""
+    at each pose's time (deformed when it deforms; present there by `PRESENT`). Poses in
+    time order run one deformation a time."""
     canonical = model.canonical
     rates = torch.zeros(len(canonical), device=canonical.means.device)
     drawn: tuple[float, Tensor, Tensor] | None = None
     for camera, t in poses:
         if drawn is None or drawn[0] != t:
-            raw = model.raw_at(t)
-            opacities = torch.sigmoid(raw["opacity_logits"])
+            means = model.raw_at(t)["means"]
+            present = torch.ones(len(means), dtype=torch.bool, device=means.device)
             if bool(canonical.temporal().any()):
-                opacities = opacities * canonical.temporal_factor(t)
-            drawn = (t, raw["means"], opacities)
+                present = canonical.temporal_factor(t) > PRESENT
+            drawn = (t, means, present)
         rate = sampling_rates(drawn[1], drawn[2], camera).to(rates.dtype)
         torch.maximum(rates, rate, out=rates)
     return rates
