@@ -87,12 +87,14 @@ class GaussianConfig:
     """Mip-Splatting's 3D smoothing filter (Yu et al. 2024, whose s = 0.2 this is): each
     Gaussian is drawn convolved with an isotropic Gaussian of variance s/ν², where ν is
     the finest sampling rate (focal length ÷ depth, pixels per world unit) of any training
-    view that can draw it, with its opacity scaled to keep its mass. A Gaussian finer than
-    its views can resolve is otherwise free to shrink to a needle or a speck that fits
-    those views' pixels and aliases everywhere else. The filter is set from all training
-    views when the run starts and every `--densify.refine-every` steps (`set_filter`);
-    it is saved with the model, so evaluation draws as training did. 0: no filter; 0.2
-    is Mip-Splatting's."""
+    view that sees it (`dyngs.engine.smoothing`), with its opacity scaled to keep its
+    mass. A Gaussian finer than its views can resolve is otherwise free to shrink to a
+    needle or a speck that fits those views' pixels and aliases everywhere else. The
+    filter is set from all training views when the run starts and every
+    `--densify.refine-every` steps (`set_filter`); it is saved with the model, so
+    evaluation draws as training did. 0: no filter (the default: on our scenes it is not
+    a measured gain, and each refresh deforms the model at every training time,
+    docs/ACCURACY.md); 0.2 is Mip-Splatting's."""
 
     def __post_init__(self) -> None:
         if not (self.filter_3d >= 0.0 and math.isfinite(self.filter_3d)):
@@ -505,7 +507,7 @@ class DynamicGaussians(nn.Module):
     @torch.no_grad()
     def set_filter(self, rates: Float[Tensor, " N"], strength: float) -> None:
         """Mip-Splatting's 3D filter from each Gaussian's finest sampling rate ν (pixels per
-        world unit; 0 where no training view can draw it): standard deviation
+        world unit; 0 where no training view sees it): standard deviation
         √strength / ν, and for the unseen the widest in use (the coarsest rate's), as Yu
         et al. 2024 do. No rate at all leaves the filter as it is."""
         if rates.shape != self.filter_std.shape:

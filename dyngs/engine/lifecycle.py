@@ -6,7 +6,7 @@ After each good step (`after_step`), in this order:
 2. **SH degree**: at each interval it may rise by one, when the frozen band's gradient
    asks for it (or on schedule, `--gaussians.sh-evidence 0`);
 3. **3D filter**: every `refine_every` steps, each Gaussian's smoothing filter is set
-   from the finest sampling rate of the training views that can draw it
+   from the finest sampling rate of the training views that see it
    (Mip-Splatting, `GaussianConfig.filter_3d`; also once when the run starts);
 4. **refinement** (`dyngs.engine.densify`): the importance of every Gaussian is measured
    on the time window's views, then Gaussians are cloned, split and pruned within the
