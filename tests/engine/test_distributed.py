@@ -156,14 +156,18 @@ def _ranks(args: list[list[str]], log_dir: Path) -> list[subprocess.Popen[bytes]
 @pytest.mark.slow
 def test_two_processes_train_what_one_process_trains_with_the_same_batch(tmp_path: Path) -> None:
     one, two = tmp_path / "one", tmp_path / "two"
-    subprocess.run([sys.executable, "-m", "dyngs.cli", *_train_args(one)], check=True,
-                   capture_output=True, env=_env())  # fmt: skip
-    done = subprocess.run(_torchrun(2, _train_args(two)), capture_output=True, env=_env())
+    # With the 3D filter on, whose refresh shares the views out and exchanges the maxima.
+    flags = ("--gaussians.filter-3d", "0.2")
+    subprocess.run([sys.executable, "-m", "dyngs.cli", *_train_args(one, STEPS, *flags)],
+                   check=True, capture_output=True, env=_env())  # fmt: skip
+    done = subprocess.run(_torchrun(2, _train_args(two, STEPS, *flags)), capture_output=True,
+                          env=_env())  # fmt: skip
     assert done.returncode == 0, done.stderr.decode()[-3000:]
     a, b = load_checkpoint(one / "checkpoint.pt"), load_checkpoint(two / "checkpoint.pt")
     assert a["step"] == b["step"] == STEPS
     n_before = 500  # the tiny run's initial points: densification changed the count
     assert len(a["model"]["canonical.means"]) == len(b["model"]["canonical.means"]) != n_before
+    assert bool((a["model"]["filter_std"] > 0).all())
     for key, value in a["model"].items():
         if isinstance(value, torch.Tensor) and value.is_floating_point():
             torch.testing.assert_close(b["model"][key], value, rtol=1e-4, atol=1e-5, msg=key)
