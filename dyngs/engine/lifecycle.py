@@ -64,7 +64,8 @@ class Lifecycle:
     optimizer stay the trainer's (it rebuilds the optimizer on resume): the methods that
     need them are given them. Under several processes (`group`), every rank holds the same
     statistics (the trainer sums each step's over the ranks) and so makes the same changes;
-    the importance renders are shared out and their maxima exchanged.
+    the importance renders and the 3D filter's views are shared out and their maxima
+    exchanged.
     """
 
     def __init__(
@@ -95,6 +96,14 @@ class Lifecycle:
         self.importance_seconds = 0.0
         self.filter_seconds = 0.0
         self.motion_times = sample_times(data.scene.train.times, config.motion.samples)
+        if config.gaussians.filter_3d > 0:  # as Mip-Splatting sizes its initial Gaussians'
+            self.refresh_filter()
+
+    def refresh_filter(self) -> None:
+        """Set the 3D filter from every training view (`smoothing.refresh_filter`)."""
+        poses = self.group.share(self.data.train_poses())
+        strength = self.config.gaussians.filter_3d
+        self.filter_seconds += refresh_filter(self.model, poses, strength, self.group)
 
     # ------------------------------------------------------------ during a step
 
@@ -150,9 +159,7 @@ class Lifecycle:
             self.revisit_motion(step)
         self.consider_sh_degree(step)
         if schedules.is_filter_step(cfg, step):
-            poses = self.group.share(self.data.train_poses())
-            self.filter_seconds += refresh_filter(self.model, poses, cfg.gaussians.filter_3d,
-                                                  self.group)  # fmt: skip
+            self.refresh_filter()
         if schedules.is_refine_step(cfg, step):
             self.refine(step, optimizer, renderer)
         if schedules.is_reset_step(cfg, step):

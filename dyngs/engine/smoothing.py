@@ -1,8 +1,8 @@
 """Mip-Splatting's 3D filter (Yu et al. 2024): how finely the training views sample each
 Gaussian, and the filter set from that. The filter itself is the model's
 (`dyngs.model.smooth_3d`, `DynamicGaussians.set_filter`); this module measures what it
-is sized by. The trainer sets it on the initial Gaussians, the lifecycle refreshes it
-every `--densify.refine-every` steps (`schedules.is_filter_step`).
+is sized by. The lifecycle sets it on the initial Gaussians and refreshes it every
+`--densify.refine-every` steps (`schedules.is_filter_step`).
 """
 
 from __future__ import annotations
@@ -14,7 +14,6 @@ import torch
 from jaxtyping import Bool, Float
 from torch import Tensor
 
-from dyngs.datamanagers.base import Split
 from dyngs.engine.distributed import SINGLE, ProcessGroup
 from dyngs.model import DynamicGaussians
 from dyngs.types import Camera
@@ -88,9 +87,3 @@ def refresh_filter(
     group.max_([rates])
     model.set_filter(rates, strength)
     return time.perf_counter() - started
-
-
-def time_ordered_poses(views: Split) -> list[tuple[Camera, float]]:
-    """A split's (camera, time) pairs sorted by time, as `finest_sampling_rates` likes."""
-    times = views.times.tolist()
-    return [(views.cameras[i], times[i]) for i in sorted(range(len(times)), key=times.__getitem__)]

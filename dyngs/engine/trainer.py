@@ -47,7 +47,6 @@ from dyngs.engine.lifecycle import Lifecycle, densify_statistics
 from dyngs.engine.objective import Objective
 from dyngs.engine.optim import build_optimizer, set_learning_rates
 from dyngs.engine.report import Counters, StepStats, log_step, run_summary, write_metrics
-from dyngs.engine.smoothing import refresh_filter, time_ordered_poses
 from dyngs.engine.writer import Writer
 from dyngs.errors import ConfigError, UserError
 from dyngs.model import CanonicalGaussians, DynamicGaussians, subsample_points
@@ -89,8 +88,7 @@ def initial_model(
     config: TrainConfig, scene: SceneData, generator: torch.Generator
 ) -> DynamicGaussians:
     """The model at step 0: a Gaussian at each of the scene's initial points (subsampled
-    to the budget), the field and head drawn from `generator`, and their 3D filter sized
-    by the training views (as Mip-Splatting does when it creates its Gaussians)."""
+    to the budget), the field and head drawn from `generator`."""
     points, colors, lifetimes = subsample_points(
         scene.points, scene.point_colors, config.gaussians.max_init_points, generator,
         scene.point_lifetimes,
@@ -100,8 +98,6 @@ def initial_model(
     )
     model.canonical.initialize(points, colors, config.gaussians, lifetimes)
     model.deforming = schedules.deforming(config, 0)
-    if config.gaussians.filter_3d > 0:
-        refresh_filter(model, time_ordered_poses(scene.train), config.gaussians.filter_3d)
     return model
 
 
