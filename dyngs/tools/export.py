@@ -124,21 +124,25 @@ def export_raw(run: LoadedRun, t: float, sh_degree: int | None = None) -> dict[s
         raise ConfigError(f"--sh-degree must be in 0..{full} for this run, got {degree}")
     every = run.model.raw_at(t)
     raw = {k: every[k].detach().clone() for k in DRAWN_PARAMS}
-    canonical = run.model.canonical
-    if bool(canonical.temporal().any()):  # a snapshot: fold temporal opacity in
-        presence = canonical.temporal_factor(t)
-        opacity = torch.sigmoid(raw["opacity_logits"].double()) * presence.double()
-        folded = (opacity.log() - torch.log1p(-opacity)).to(raw["opacity_logits"].dtype)
-        raw["opacity_logits"] = torch.where(presence < 1, folded, raw["opacity_logits"])
-    if run.model.filtered:  # as drawn: the 3D filter folded into scales and opacities
-        scales, opacity = smooth_3d(
-            raw["log_scales"].double().exp(),
-            torch.sigmoid(raw["opacity_logits"].double()),
-            run.model.filter_std.double(),
-        )
-        raw["log_scales"] = scales.log().to(raw["log_scales"].dtype)
-        logits = opacity.log() - torch.log1p(-opacity)
-        raw["opacity_logits"] = logits.to(raw["opacity_logits"].dtype)
+    # Fold what `at` applies after activation into the raw values, as drawn: temporal
+    # opacity (a snapshot) and the 3D filter. Rows neither touches keep their exact values.
+    canonical, model = run.model.canonical, run.model
+    logits, log_scales = raw["opacity_logits"], raw["log_scales"]
+    opacity = torch.sigmoid(logits.double())
+    folded = torch.zeros_like(logits, dtype=torch.bool)
+    if bool(canonical.temporal().any()):
+        presence = canonical.temporal_factor(t).double()
+        opacity = opacity * presence
+        folded |= presence < 1
+    if model.filtered:
+        std = model.filter_std.double()
+        scales, opacity = smooth_3d(log_scales.double().exp(), opacity, std)
+        widened = std > 0
+        as_logs = scales.log().to(log_scales.dtype)
+        raw["log_scales"] = torch.where(widened[:, None], as_logs, log_scales)
+        folded |= widened
+    as_logits = (opacity.log() - torch.log1p(-opacity)).to(logits.dtype)
+    raw["opacity_logits"] = torch.where(folded, as_logits, logits)
     raw["quats"] = unit_quaternions(raw["quats"])
     rest = raw["sh_rest"][:, : num_sh_bases(degree) - 1]
     rest[:, max(num_sh_bases(run.model.active_sh_degree) - 1, 0) :] = 0.0
