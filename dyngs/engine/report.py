@@ -114,8 +114,8 @@ def run_summary(
     config: TrainConfig,
     step: int,
     device: torch.device,
-    importance_seconds: float = 0.0,
-    filter_seconds: float = 0.0,
+    importance_seconds: float,
+    filter_seconds: float,
 ) -> dict[str, object]:
     """What metrics.json says of a finished run besides its image metrics."""
     return {
