@@ -13,7 +13,9 @@ core, an upper bound on an idle two-core machine's), with LPIPS weights from
 ../shared/weights when present. Runs already in `--output-dir` are reused. hfu-3cam's
 default schedule (about 21 000 steps at 480×270) takes hours on a CPU, so it is given
 `--time-budget` minutes (`--hfu-minutes`), which the run fits its schedule into;
-`--time-budget M` does the same for every other scene.
+`--time-budget M` does the same for every other scene. `--flags` adds dyngs-train flags to
+every run: train a variant into its own `--output-dir` and compare it with the defaults'
+runs, pair by pair, with `benchmarks/compare_runs.py`.
 Writes `benchmarks/results/accuracy.json` (every run) and prints a Markdown table of
 test PSNR, SSIM, LPIPS, train time, Gaussians and model size per scene (mean over seeds),
 with the commit and machine, for docs/ACCURACY.md.
@@ -24,6 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shlex
 import statistics
 import subprocess
 import sys
@@ -121,11 +124,15 @@ def main() -> None:
     parser.add_argument("--hfu-minutes", type=float, default=20.0)
     parser.add_argument("--time-budget", type=float, default=None,
                         help="minutes for every other scene (default: none)")  # fmt: skip
+    parser.add_argument("--flags", default="",
+                        help='dyngs-train flags for every run, one string, e.g. '
+                             '"--losses.plane-roughness 1e-3"')  # fmt: skip
     parser.add_argument("--output-dir", type=Path, default=ROOT / "outputs" / "bench-accuracy")
     parser.add_argument("--results", type=Path, default=ROOT / "benchmarks/results/accuracy.json")
     args = parser.parse_args()
     args.output_dir.mkdir(parents=True, exist_ok=True)
-    chosen = {n: a for n, a in scenes(args.hfu_minutes, args.time_budget).items()
+    flags = shlex.split(args.flags)
+    chosen = {n: [*a, *flags] for n, a in scenes(args.hfu_minutes, args.time_budget).items()
               if args.only is None or n in args.only}  # fmt: skip
     seeded = set(chosen if args.seeded is None else args.seeded)
     work = [
@@ -140,7 +147,7 @@ def main() -> None:
     args.results.parent.mkdir(parents=True, exist_ok=True)
     summary = {"commit": commit, "machine": machine_info(), "threads": args.threads,
                "jobs": args.jobs, "time_budget": args.time_budget,
-               "hfu_minutes": args.hfu_minutes, "runs": rows}  # fmt: skip
+               "hfu_minutes": args.hfu_minutes, "flags": flags, "runs": rows}  # fmt: skip
     args.results.write_text(json.dumps(summary, indent=1) + "\n")
     print(f"\ncommit {commit}, {machine_info()}\n")
     print(table(rows))

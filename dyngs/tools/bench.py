@@ -64,6 +64,7 @@ from dyngs.io import write_json
 from dyngs.renderers import renderer_name
 from dyngs.runs import parse_train_args, run_training
 from dyngs.tools.common import run_tool
+from dyngs.tools.paired import paired_change
 
 SUBCOMMAND_KEYS = ("field", "renderer")
 """Grid keys that choose a component: `field=mlp` becomes the subcommand `field:mlp`."""
@@ -640,6 +641,9 @@ def summarize_seeds(
                 else:
                     changes = [a / b - 1 for a, b in pairs if b]
                 entry[f"change:{key}"] = _spread(changes) if changes else None
+                if changes and key in SEED_QUALITY:  # is it a change at all? (dyngs.tools.paired)
+                    paired = paired_change([b for _, b in pairs], [a for a, _ in pairs])
+                    entry[f"change:{key}"] |= {"stderr": paired.stderr, "p": paired.p}
         summary.append(entry)
     return summary
 
@@ -669,7 +673,7 @@ def _percent(spread: dict[str, float | None] | None) -> str:
 
 def seeds_table(summary: Sequence[dict[str, Any]], title: str) -> Table:
     table = Table(title=title)
-    for header in ("point", "seeds", "PSNR dB", "Δ PSNR", "Δ PSNR min..max", "SSIM",
+    for header in ("point", "seeds", "PSNR dB", "Δ PSNR", "Δ PSNR min..max", "p", "SSIM",
                    "render ms", "Δ render", "model MiB", "Δ size", "dynamic"):  # fmt: skip
         table.add_column(header, justify="left" if header == "point" else "right",
                          max_width=36 if header == "point" else None, overflow="fold")  # fmt: skip
@@ -682,6 +686,7 @@ def seeds_table(summary: Sequence[dict[str, Any]], title: str) -> Table:
             _plus_minus(entry["psnr"], 2),
             _plus_minus(psnr_change, 2, signed=True) if psnr_change else "",
             f"{psnr_change['min']:+.2f}..{psnr_change['max']:+.2f}" if psnr_change else "",
+            f"{psnr_change['p']:.2g}" if psnr_change else "",
             _plus_minus(entry["ssim"], 3),
             _plus_minus(entry["render_ms_median"], 1),
             _percent(entry.get("change:render_ms_median")),

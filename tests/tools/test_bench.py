@@ -134,6 +134,12 @@ def test_seeds_give_each_point_a_spread_and_a_paired_change(
     assert "versus" not in first and second["versus"] == "max-iters=2"
     differences = [rows["3", s]["psnr"] - rows["2", s]["psnr"] for s in "01"]
     assert second["change:psnr"]["mean"] == pytest.approx(sum(differences) / 2)
+    assert second["change:psnr"]["stderr"] == pytest.approx(
+        abs(differences[0] - differences[1]) / 2
+    )  # std / √2 of two differences
+    # Two pairs: p = 1 unless both changed the same way (then the 2 of 4 sign choices).
+    same_way = differences[0] * differences[1] > 0
+    assert second["change:psnr"]["p"] == (0.5 if same_way else 1.0)
     ratios = [rows["3", s]["model_bytes"] / rows["2", s]["model_bytes"] - 1 for s in "01"]
     assert second["change:model_bytes"]["mean"] == pytest.approx(sum(ratios) / 2)
     with (out / "seeds.csv").open() as f:
