@@ -12,8 +12,9 @@ For every scene and for all pairs together it prints the base and variant means 
 paired change of test PSNR (variant − base): its mean, standard error, how many pairs went
 up, and the p-value of Fisher's exact sign-flip test (`dyngs.tools.paired`), which calls
 it a gain or a loss only when p < 0.05. One run of each recipe cannot say that: seeds
-alone move a scene by more than the changes worth testing. It also gives the relative
-change of training time and Gaussians (what the accuracy costs). Writes every pair and
+alone move a scene by more than the changes worth testing. It also gives the mean
+change of SSIM and LPIPS, and the relative change of training time and Gaussians (what
+the accuracy costs). Writes every pair and
 the summaries to `--output` (JSON).
 """
 
@@ -33,7 +34,7 @@ sys.path.insert(0, str(ROOT))
 from dyngs.tools.paired import paired_change  # noqa: E402
 
 SEED_SUFFIX = re.compile(r"-s\d+$")
-KEYS = ("psnr", "train_seconds", "num_gaussians")
+KEYS = ("psnr", "ssim", "lpips", "train_seconds", "num_gaussians")
 
 
 def find_pairs(base: str, variant: str) -> dict[str, tuple[Path, Path]]:
@@ -79,6 +80,11 @@ def compare(pairs: dict[str, tuple[Path, Path]]) -> dict:
 def summarize(label: str, rows: list[dict]) -> dict:
     change = paired_change([r["base:psnr"] for r in rows], [r["variant:psnr"] for r in rows])
 
+    def difference(key: str) -> float | None:
+        pairs = [(r[f"base:{key}"], r[f"variant:{key}"]) for r in rows]
+        measured = [(b, v) for b, v in pairs if b is not None and v is not None]
+        return statistics.fmean(v - b for b, v in measured) if measured else None
+
     def relative(key: str) -> float | None:
         ratios = [r[f"variant:{key}"] / r[f"base:{key}"] - 1 for r in rows
                   if r.get(f"base:{key}") and r.get(f"variant:{key}") is not None]  # fmt: skip
@@ -90,6 +96,7 @@ def summarize(label: str, rows: list[dict]) -> dict:
         "variant_psnr": statistics.fmean(r["variant:psnr"] for r in rows),
         "change": change.mean, "stderr": change.stderr, "std": change.std, "p": change.p,
         "wins": change.wins, "verdict": change.verdict(),
+        "ssim_change": difference("ssim"), "lpips_change": difference("lpips"),
         "train_seconds_change": relative("train_seconds"),
         "gaussians_change": relative("num_gaussians"),
     }  # fmt: skip
@@ -97,17 +104,21 @@ def summarize(label: str, rows: list[dict]) -> dict:
 
 def table(summaries: list[dict]) -> str:
     headers = ("scene", "pairs", "base dB", "variant dB", "change ± SE", "up", "p", "verdict",
-               "train time", "Gaussians")  # fmt: skip
+               "Δ SSIM", "Δ LPIPS", "train time", "Gaussians")  # fmt: skip
     lines = ["| " + " | ".join(headers) + " |", "|" + " --- |" * len(headers)]
 
     def percent(value: float | None) -> str:
         return "—" if value is None else f"{100 * value:+.0f} %"
+
+    def signed(value: float | None) -> str:
+        return "—" if value is None else f"{value:+.4f}"
 
     for s in summaries:
         se = "" if s["stderr"] is None else f" ± {s['stderr']:.2f}"
         lines.append(
             f"| {s['label']} | {s['pairs']} | {s['base_psnr']:.2f} | {s['variant_psnr']:.2f} | "
             f"{s['change']:+.2f}{se} | {s['wins']} | {s['p']:.2g} | {s['verdict']} | "
+            f"{signed(s['ssim_change'])} | {signed(s['lpips_change'])} | "
             f"{percent(s['train_seconds_change'])} | {percent(s['gaussians_change'])} |"
         )
     return "\n".join(lines)

@@ -22,7 +22,8 @@ VARIANT = {"texture-s0": 28.3, "texture-s1": 27.3, "texture-s2": 28.8, "collisio
 def _runs(root: Path, psnrs: dict[str, float], seconds: float) -> None:
     for name, psnr in psnrs.items():
         (root / name).mkdir(parents=True)
-        metrics = {"psnr": psnr, "train_seconds": seconds, "num_gaussians": 1000}
+        metrics = {"psnr": psnr, "ssim": psnr / 100, "lpips": None, "train_seconds": seconds,
+                   "num_gaussians": 1000}  # fmt: skip
         (root / name / "metrics.json").write_text(json.dumps(metrics))
 
 
@@ -43,6 +44,8 @@ def test_pairs_by_name_per_scene_and_pooled(tmp_path: Path, capsys: pytest.Captu
     assert pooled["stderr"] == pytest.approx(expected.stderr)
     assert pooled["p"] == pytest.approx(expected.p)
     assert pooled["train_seconds_change"] == pytest.approx(0.10)
+    assert pooled["ssim_change"] == pytest.approx(expected.mean / 100)
+    assert pooled["lpips_change"] is None  # not measured: no figure rather than a zero
     assert texture["label"] == "texture" and texture["pairs"] == 3
     assert texture["change"] == pytest.approx((0.8 - 0.7 + 0.6) / 3)
     assert collision["verdict"] == "within noise"  # two pairs can never say more
