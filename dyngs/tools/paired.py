@@ -8,9 +8,10 @@ differences pair by pair, removes what a seed does to both alike. What is left i
 pair's own noise, and the question is whether the mean difference stands out of it.
 
 The test here is Fisher's randomisation test for paired data (Fisher 1935, *The Design of
-Experiments*, §21): if the change did nothing, each pair's difference would be as likely
-to have come out with the other sign, so the p-value is the share of the 2ⁿ sign
-assignments whose mean is at least as far from zero as the one observed. It assumes no
+Experiments*, on Darwin's paired Zea mays plants): if the change did nothing, each
+pair's difference would be as likely to have come out with the other sign, so the
+p-value is the share of the 2ⁿ sign assignments whose mean is at least as far from zero
+as the one observed. It assumes no
 distribution (our differences are not normal: a seed that collapses gives one pair of
 −9 dB among pairs of ±0.5), it is exact for n ≤ `EXACT_PAIRS`, and beyond that it is
 estimated from `DRAWS` seeded random assignments.
