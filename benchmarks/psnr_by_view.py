@@ -5,14 +5,15 @@ training views looked from near them?
 
 For each run, reads its evaluated frames (`eval_<split>.json` from `dyngs-eval`, or for
 the test split the `metrics.json` training wrote) and its cameras (`scene.json`, no
-images), and groups the frames by camera position (a fixed rig's cameras; a camera that
-moves makes one group a view). Per group it prints the frames, the camera's elevation
-above the scene box's centre (in degrees, +z up, the D-NeRF and MuJoCo convention), the
-mean PSNR, the group's share of the split's squared error, the training views taken from
-that same camera, and those whose direction from the box centre lies within `--within`
-degrees of the group's. A monocular sequence sees each time from one camera, so a
-viewpoint that few training views share can be fitted and generalised worse than the
-rest (docs/ACCURACY.md, texture). Writes the same figures to --output (JSON).
+images), and groups the frames by camera position (`Camera.viewpoint`: a fixed rig's
+cameras; a camera that moves makes one group a view). Per group it prints the frames,
+the camera's elevation above the scene box's centre (in degrees, +z up, the D-NeRF and
+MuJoCo convention), the mean PSNR, the group's share of the split's squared error, the
+training views taken from that same camera, and those whose direction from the box
+centre lies within `--within` degrees of the group's. A monocular sequence sees each
+time from one camera, so a viewpoint that few training views share can be fitted and
+generalised worse than the rest (docs/ACCURACY.md, texture). Writes the same figures to
+--output (JSON).
 """
 
 from __future__ import annotations
@@ -30,13 +31,6 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from dyngs.datamanagers.scene_info import SCENE_FILE, SceneInfo  # noqa: E402
-from dyngs.types import Camera  # noqa: E402
-
-
-def camera_centre(camera: Camera) -> torch.Tensor:
-    """The camera's position in the world: −Rᵀt of its world-to-camera transform."""
-    w2c = camera.world_to_camera.double()
-    return -w2c[:3, :3].T @ w2c[:3, 3]
 
 
 def frames_of(run: Path, split: str) -> list[dict] | None:
@@ -53,30 +47,26 @@ def by_view(scene: SceneInfo, split: str, frames: list[dict], within: float) -> 
     """One entry per camera position of the split's evaluated frames (see the module
     docstring), worst mean PSNR first."""
     centre = torch.tensor(scene.scene_box.center, dtype=torch.float64)
-    views = getattr(scene, split)
-    lower, upper = torch.tensor(scene.scene_box.lower), torch.tensor(scene.scene_box.upper)
-    snap = 1e-4 * float(torch.linalg.vector_norm(upper - lower))  # one position, one camera
-    train = torch.stack([camera_centre(c) for c in scene.train.cameras])
+    cameras = getattr(scene, split).cameras
+    train = torch.stack([c.to(dtype=torch.float64).center for c in scene.train.cameras])
     train_dirs = torch.nn.functional.normalize(train - centre, dim=1)
-    groups: dict[tuple[int, ...], list[dict]] = {}
+    train_viewpoints = [c.viewpoint() for c in scene.train.cameras]
+    groups: dict[tuple[float, ...], list[dict]] = {}
     for frame in frames:
-        position = camera_centre(views.cameras[frame["index"]])
-        key = tuple(int(v) for v in torch.round(position / snap).tolist())
-        groups.setdefault(key, []).append(frame | {"position": position})
+        groups.setdefault(cameras[frame["index"]].viewpoint(), []).append(frame)
     total_error = sum(10 ** (-f["psnr"] / 10) for f in frames)
     rows = []
-    for members in groups.values():
-        position = members[0]["position"]
+    for viewpoint, members in groups.items():
+        position = cameras[members[0]["index"]].to(dtype=torch.float64).center
         direction = torch.nn.functional.normalize(position - centre, dim=0)
         cosine = (train_dirs @ direction).clamp(-1.0, 1.0)
-        same = torch.linalg.vector_norm(train - position, dim=1) <= snap
         rows.append({
             "position": [round(v, 4) for v in position.tolist()],
             "elevation": math.degrees(math.asin(float(direction[2]))),
             "frames": len(members),
             "psnr": mean(f["psnr"] for f in members),
             "error_share": sum(10 ** (-f["psnr"] / 10) for f in members) / total_error,
-            "train_same_camera": int(same.sum()),
+            "train_same_camera": train_viewpoints.count(viewpoint),
             "train_within": int((torch.rad2deg(torch.acos(cosine)) <= within).sum()),
         })  # fmt: skip
     return sorted(rows, key=lambda row: row["psnr"])

@@ -78,6 +78,11 @@ class Camera:
         """Camera centre in world space, -Rᵀt."""
         return -self.rotation.T @ self.translation
 
+    def viewpoint(self, decimals: int = 3) -> tuple[float, ...]:
+        """The centre rounded to `decimals`: one key per position of a fixed rig, so that
+        views from the same camera can be counted and grouped."""
+        return tuple(round(float(v), decimals) for v in self.center)
+
     def to(
         self, device: torch.device | str | None = None, dtype: torch.dtype | None = None
     ) -> Camera:

@@ -218,17 +218,13 @@ def _inside(
 # Carving
 
 
-def _viewpoint(camera: Camera) -> tuple[float, ...]:
-    return tuple(round(float(v), 3) for v in camera.center)
-
-
 def windows(split: Split, views: list[int]) -> list[list[int]]:
     """`views` in time order, cut into consecutive windows of at least `WINDOW_VIEWS`
     views and `WINDOW_VIEWPOINTS` viewpoints (fewer only where the capture has fewer), a
     timestep never split; at most `MAX_WINDOWS`, spread over the sequence, the first
     always among them."""
     order = sorted(views, key=lambda i: float(split.times[i]))
-    total = len({_viewpoint(split.cameras[i]) for i in order})
+    total = len({split.cameras[i].viewpoint() for i in order})
     need_views, need_points = min(WINDOW_VIEWS, len(order)), min(WINDOW_VIEWPOINTS, total)
     found: list[list[int]] = []
     current: list[int] = []
@@ -237,7 +233,7 @@ def windows(split: Split, views: list[int]) -> list[list[int]]:
         boundary = position + 1 == len(order) or float(split.times[order[position + 1]]) != float(
             split.times[index]
         )
-        viewpoints = len({_viewpoint(split.cameras[i]) for i in current})
+        viewpoints = len({split.cameras[i].viewpoint() for i in current})
         if boundary and len(current) >= need_views and viewpoints >= need_points:
             found.append(current)
             current = []
@@ -286,7 +282,7 @@ def _hull_test(
     the union over time of what moves. Also which candidates two viewpoints see at all."""
     groups: dict[tuple[float, ...], list[int]] = {}
     for i in views:
-        groups.setdefault(_viewpoint(split.cameras[i]), []).append(i)
+        groups.setdefault(split.cameras[i].viewpoint(), []).append(i)
     seen = torch.zeros(len(candidates), dtype=torch.long)
     inside = torch.zeros(len(candidates), dtype=torch.long)
     for members in groups.values():
@@ -313,7 +309,7 @@ def _carve_window(
     """Points of one window's hull (`_hull_test`): candidates along rays through each of
     its silhouettes in turn."""
     views = [i for i in window if shapes.masks[i] is not None]
-    if len({_viewpoint(split.cameras[i]) for i in views}) < 2:
+    if len({split.cameras[i].viewpoint() for i in views}) < 2:
         return torch.zeros(0, 3, dtype=torch.float64)
     kept: list[Tensor] = []
     found = 0

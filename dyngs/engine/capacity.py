@@ -39,8 +39,7 @@ def pixel_footprint(scene: SceneData) -> float:
 
 
 def distinct_viewpoints(scene: SceneData, decimals: int = 3) -> int:
-    centers = {tuple(round(float(v), decimals) for v in c.center) for c in scene.train.cameras}
-    return len(centers)
+    return len({camera.viewpoint(decimals) for camera in scene.train.cameras})
 
 
 def data_scale(scene: SceneData) -> DataScale:
