@@ -80,14 +80,17 @@ def compare(pairs: dict[str, tuple[Path, Path]]) -> dict:
 def summarize(label: str, rows: list[dict]) -> dict:
     change = paired_change([r["base:psnr"] for r in rows], [r["variant:psnr"] for r in rows])
 
+    def measured(key: str) -> list[tuple[float, float]]:
+        """(base, variant) of the pairs where both runs report `key`."""
+        both = [(r[f"base:{key}"], r[f"variant:{key}"]) for r in rows]
+        return [(b, v) for b, v in both if b is not None and v is not None]
+
     def difference(key: str) -> float | None:
-        pairs = [(r[f"base:{key}"], r[f"variant:{key}"]) for r in rows]
-        measured = [(b, v) for b, v in pairs if b is not None and v is not None]
-        return statistics.fmean(v - b for b, v in measured) if measured else None
+        changes = [v - b for b, v in measured(key)]
+        return statistics.fmean(changes) if changes else None
 
     def relative(key: str) -> float | None:
-        ratios = [r[f"variant:{key}"] / r[f"base:{key}"] - 1 for r in rows
-                  if r.get(f"base:{key}") and r.get(f"variant:{key}") is not None]  # fmt: skip
+        ratios = [v / b - 1 for b, v in measured(key) if b]
         return statistics.fmean(ratios) if ratios else None
 
     return {
