@@ -450,16 +450,26 @@ class DynamicGaussians(nn.Module):
         """Share of the Gaussians that are deformed (0 for an empty model)."""
         return float(self.dynamic.float().mean()) if len(self.dynamic) else 0.0
 
-    def raw_at(self, t: float, deform: bool | None = None) -> dict[str, Tensor]:
+    def raw_at(
+        self, t: float, deform: bool | None = None, only: Bool[Tensor, " N"] | None = None
+    ) -> dict[str, Tensor]:
         """Raw (unactivated) parameters at time t, keyed like GAUSSIAN_PARAMS: the canonical
         ones plus the head's deltas (the canonical ones alone when `deform`, by default
-        the model's `deforming`, is False). Exports read these; `at` activates them."""
+        the model's `deforming`, is False). Exports read these; `at` activates them.
+        `only`: deform just the dynamic Gaussians it marks; the others keep their canonical
+        parameters (`at`'s `absent_below`)."""
         deform = self.deforming if deform is None else deform
         _check_time(t)
         c = self.canonical
         raw: dict[str, Tensor] = dict(c.params())
+        chosen: Int[Tensor, " M"] | None = None
+        if only is not None:
+            wanted = self.dynamic & only
+            if not bool(wanted.any()):
+                return raw
+            chosen = None if bool(wanted.all()) else wanted.nonzero().squeeze(1)
         if deform and self.any_dynamic():
-            d, index = self.deltas(t)
+            d, index = self.deltas(t, chosen)
             # A Gaussian with a non-finite parameter is culled when drawn, but its activation
             # still passes NaN back (exp(inf) · 0); cut its deltas off so that NaN never
             # reaches the field and head, whose gradients every other Gaussian shares.
@@ -481,15 +491,33 @@ class DynamicGaussians(nn.Module):
         return raw
 
     def at(
-        self, t: float, *, sh_degree: int | None = None, deform: bool | None = None
+        self,
+        t: float,
+        *,
+        sh_degree: int | None = None,
+        deform: bool | None = None,
+        absent_below: float = 0.0,
     ) -> Gaussians:
         """Drawable Gaussians at time t, with the model's active SH degree and deformation
-        unless overridden (`deform=False`: the canonical Gaussians)."""
-        raw = self.raw_at(t, self.deforming if deform is None else deform)
-        sh = torch.cat((raw["sh_dc"], raw["sh_rest"]), dim=1)
-        degree = self.active_sh_degree if sh_degree is None else sh_degree
+        unless overridden (`deform=False`: the canonical Gaussians).
+
+        `absent_below`: a renderer's α floor (`Guards.alpha_min`). A temporal Gaussian whose
+        presence at t is under it is left undeformed, since it draws nothing there: its
+        opacity, at most its presence (an opacity, the head's change to it included, is at
+        most 1, and the 3D and antialiasing filters only lower it), is under the floor, so
+        the renderer skips it, and its pixels and gradients are those it would have had
+        deformed (none). The field and head then run on the Gaussians present at t only:
+        on a monocular sequence with short lifetimes, about half of them. Only for a
+        caller that reads nothing but the drawn image: these Gaussians' means are not
+        where they would be at t."""
         c = self.canonical
         presence = c.temporal_factor(t) if bool(c.temporal().any()) else None
+        only = None
+        if presence is not None and absent_below > 0:
+            only = presence.detach().double() >= absent_below  # exactly as the floor reads
+        raw = self.raw_at(t, self.deforming if deform is None else deform, only)
+        sh = torch.cat((raw["sh_dc"], raw["sh_rest"]), dim=1)
+        degree = self.active_sh_degree if sh_degree is None else sh_degree
         g = activate(
             raw["means"], raw["quats"], raw["log_scales"], raw["opacity_logits"], sh, degree,
             presence,

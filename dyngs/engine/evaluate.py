@@ -28,7 +28,7 @@ from dyngs.datamanagers.datamanager import DataManager, TrainBatch
 from dyngs.engine.writer import to_uint8
 from dyngs.metrics import LPIPS, load_lpips, psnr, ssim
 from dyngs.model import DynamicGaussians
-from dyngs.renderers.base import Renderer
+from dyngs.renderers.base import ABSENT_BELOW, Renderer
 
 
 def _sync(device: torch.device) -> None:
@@ -82,7 +82,8 @@ def evaluate(
     with Progress(console=console or Console(), transient=True) as progress:
         task = progress.add_task(f"evaluate {split}", total=len(views))
         for i, (view, (render_ms, deformation_ms)) in enumerate(zip(views, timings, strict=True)):
-            rgb = renderer(model.at(view.time), view.camera, background).rgb.clamp(0, 1)
+            drawn = model.at(view.time, absent_below=ABSENT_BELOW)
+            rgb = renderer(drawn, view.camera, background).rgb.clamp(0, 1)
             frame = {"index": i, "time": view.time, **scorer(i, rgb, view.image)}
             frames.append(frame | {"render_ms": render_ms, "deformation_ms": deformation_ms})
             if image_dir is not None:
@@ -106,12 +107,12 @@ def time_renders(
     `warmup` untimed renders of the first (leaving out one-off costs such as allocator
     growth and CUDA kernel loading)."""
     for _ in range(warmup if views else 0):
-        renderer(model.at(views[0].time), views[0].camera, background)
+        renderer(model.at(views[0].time, absent_below=ABSENT_BELOW), views[0].camera, background)
     timings: list[tuple[float, float]] = []
     for view in views:
         _sync(device)
         started = time.perf_counter()
-        gaussians = model.at(view.time)
+        gaussians = model.at(view.time, absent_below=ABSENT_BELOW)
         _sync(device)
         deformed = time.perf_counter()
         renderer(gaussians, view.camera, background)

@@ -68,6 +68,12 @@ class Guards:
         return self.mip_filter if antialiased else self.eps2d
 
 
+ABSENT_BELOW = Guards().alpha_min
+"""A Gaussian whose temporal presence at t is under every renderer's α floor draws nothing
+at t (its opacity is at most its presence), so drawing may leave it undeformed there
+(`DynamicGaussians.at(absent_below=ABSENT_BELOW)`): the same pixels and gradients."""
+
+
 @dataclass(frozen=True)
 class AntialiasedConfig:
     """The base of the built-in renderers' configs: the one drawing rule they all offer both

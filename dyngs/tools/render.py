@@ -28,6 +28,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from dyngs.datamanagers.scene_info import SceneInfo
 from dyngs.engine.writer import to_uint8
 from dyngs.errors import ConfigError, UserError
+from dyngs.renderers.base import ABSENT_BELOW
 from dyngs.runs import LoadedRun, RunOverrides, load_run
 from dyngs.tools.common import run_tool
 from dyngs.types import Camera
@@ -205,7 +206,8 @@ def camera_path(run: LoadedRun, config: RenderConfig) -> list[tuple[Camera, floa
 def render_frame(run: LoadedRun, camera: Camera, t: float) -> UInt8[np.ndarray, "H W 3"]:
     """One frame of the video: the run's model at time t through `camera`, 8-bit RGB."""
     background = run.scene.background.to(run.device, torch.float32)
-    return to_uint8(run.renderer(run.model.at(t), camera.to(run.device), background).rgb)
+    drawn = run.model.at(t, absent_below=ABSENT_BELOW)
+    return to_uint8(run.renderer(drawn, camera.to(run.device), background).rgb)
 
 
 @torch.no_grad()

@@ -27,7 +27,7 @@ from dyngs.renderers import (
     cpu_tile_available,
     default_renderer,
 )
-from dyngs.renderers.base import Renderer
+from dyngs.renderers.base import ABSENT_BELOW, Renderer
 from dyngs.types import Camera, Gaussians
 
 STATIC_COLOR = (0.30, 0.55, 0.95)
@@ -94,7 +94,7 @@ def draw(
     look: Look = Look(),
 ) -> UInt8[np.ndarray, "H W 3"]:
     """The frame the viewer shows: the model at time t seen by `camera`, as `look` asks."""
-    gaussians = model.at(t, deform=model.deforming and look.deform)
+    gaussians = model.at(t, deform=model.deforming and look.deform, absent_below=ABSENT_BELOW)
     if look.motion_colors:
         gaussians = motion_colored(gaussians, model.dynamic)
     device = gaussians.means.device
