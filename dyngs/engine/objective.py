@@ -27,6 +27,7 @@ from dyngs.config import LossConfig
 from dyngs.datamanagers.datamanager import DataManager, TrainBatch
 from dyngs.errors import ConfigError
 from dyngs.fields.base import PlaneGrids
+from dyngs.losses import compiled_planes
 from dyngs.losses.arap import arap_loss, neighbor_weights
 from dyngs.losses.photometric import photometric
 from dyngs.losses.temporal import time_l1_to_static, time_smoothness
@@ -62,7 +63,13 @@ LOSS_TERMS: Registry[LossTerm] = Registry("loss term", "dyngs.losses", _check_te
 
 def plane_terms(weights: LossConfig, planes: PlaneGrids) -> dict[str, Tensor]:
     """Plane regularizers (K-Planes, Fridovich-Keil et al. 2023), weighted; a term with
-    weight 0, or a field without planes, costs nothing."""
+    weight 0, or a field without planes, costs nothing. On the CPU, for a field that gives
+    its stacked plane groups, the default three (TV, time smoothness, time L1) are one
+    compiled pass each way (`compiled_planes`): these PyTorch functions' values to float
+    rounding."""
+    stacked = planes.spatial_groups + planes.temporal_groups
+    if weights.plane_roughness == 0 and compiled_planes.usable(stacked):
+        return _compiled_plane_terms(weights, planes)
     terms: dict[str, Tensor] = {}
     if weights.plane_tv > 0 and planes.spatial:
         terms["plane_tv"] = weights.plane_tv * plane_tv(planes.spatial)
@@ -72,6 +79,25 @@ def plane_terms(weights: LossConfig, planes: PlaneGrids) -> dict[str, Tensor]:
         terms["time_smoothness"] = weights.time_smoothness * time_smoothness(planes.temporal)
     if weights.time_l1 > 0 and planes.temporal:
         terms["time_l1"] = weights.time_l1 * time_l1_to_static(planes.temporal)
+    return terms
+
+
+def _compiled_plane_terms(weights: LossConfig, planes: PlaneGrids) -> dict[str, Tensor]:
+    """`plane_terms` without roughness, through `compiled_planes.plane_values` on the
+    field's stacked plane groups."""
+    spatial = planes.spatial_groups if weights.plane_tv > 0 else []
+    timed = weights.time_smoothness > 0 or weights.time_l1 > 0
+    temporal = planes.temporal_groups if timed else []
+    if not spatial and not temporal:
+        return {}
+    tv, smoothness, l1 = compiled_planes.plane_values(spatial, temporal)
+    terms: dict[str, Tensor] = {}
+    if spatial:
+        terms["plane_tv"] = weights.plane_tv * tv
+    if weights.time_smoothness > 0 and temporal:
+        terms["time_smoothness"] = weights.time_smoothness * smoothness
+    if weights.time_l1 > 0 and temporal:
+        terms["time_l1"] = weights.time_l1 * l1
     return terms
 
 

@@ -36,6 +36,12 @@ class PlaneGrids:
 
     spatial: list[Tensor] = field(default_factory=list)
     temporal: list[Tensor] = field(default_factory=list)
+    spatial_groups: list[Tensor] = field(default_factory=list)
+    """Optional: the spatial planes as the field stores them, stacked [G, F, R1, R0], each
+    plane in one group. A regularizer that reads these writes one gradient per group,
+    where a plane view's gradient is a zero-filled group-sized tensor of its own."""
+    temporal_groups: list[Tensor] = field(default_factory=list)
+    """Optional: the time planes so, as `spatial_groups`."""
 
 
 class Field(Protocol):

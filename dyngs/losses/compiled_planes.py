@@ -1,0 +1,118 @@
+"""The default plane regularizers in one compiled pass each way, on the CPU.
+
+`plane_values(spatial, temporal)` is (`tv.plane_tv`, `temporal.time_smoothness`,
+`temporal.time_l1_to_static`) of the planes held in the stacked groups `spatial` and
+`temporal` ([G, F, R1, R0] each, `PlaneGrids.spatial_groups`), as one differentiable [3]
+tensor, summed in float64 by `plane_kernels`. Taking the groups, not views of their
+planes, each group gets one gradient, written whole: autograd would give every plane
+view a zero-filled group-sized gradient of its own and add them up. The PyTorch functions
+stay the reference, used off the CPU, without numba and for fields that give no groups;
+tests/losses/test_compiled_planes.py holds the two together.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from dyngs.compiled import numba_available, run_kernel, thread_count
+
+
+def usable(groups: list[Tensor]) -> bool:
+    """Whether these stacked plane groups can go through the compiled path: on the CPU
+    with numba, contiguous, of one dtype and one channel count."""
+    if not groups or not numba_available():
+        return False
+    first = groups[0]
+    return all(
+        g.device.type == "cpu" and g.dim() == 4 and g.is_contiguous()
+        and g.dtype == first.dtype and g.shape[1] == first.shape[1]
+        for g in groups
+    )  # fmt: skip
+
+
+def plane_values(spatial: list[Tensor], temporal: list[Tensor]) -> Tensor:
+    """[plane TV of the planes in `spatial`, time smoothness and time L1 of those in
+    `temporal`], each 0 (with no gradient) for an empty list, as the reference functions
+    define them: means over planes of each plane's mean."""
+    return _PlaneValues.apply(len(spatial), *spatial, *temporal)
+
+
+def _planes(groups: tuple[Tensor, ...]) -> tuple[np.ndarray, ...]:
+    """Every plane of the groups, group by group, as [F, R1, R0] arrays (views)."""
+    return tuple(plane for g in groups for plane in g.detach().numpy())
+
+
+def _counts(groups: tuple[Tensor, ...], along: tuple[int, int]) -> np.ndarray:
+    """[planes, 2]: the terms in each plane's two sums, F·(R1 − along[0])·R0 and
+    F·R1·(R0 − along[1]), 0 where the plane is too short for them."""
+    rows = []
+    for g in groups:
+        _, f, r1, r0 = g.shape
+        rows += [(f * max(r1 - along[0], 0) * r0, f * r1 * max(r0 - along[1], 0))] * len(g)
+    return np.array(rows, dtype=np.float64)
+
+
+def _per_plane(kernel: Any, planes: tuple[np.ndarray, ...], dtype: str) -> np.ndarray:
+    """A sums kernel's two sums for each plane, [planes, 2], added channel by channel."""
+    channels = planes[0].shape[0]
+    sums = np.empty((len(planes) * channels, 2))
+    run_kernel(kernel, thread_count(None), dtype, planes, sums)
+    return sums.reshape(len(planes), channels, 2).sum(axis=1)
+
+
+def _means(sums: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """sums ÷ counts, 0 where a count is 0."""
+    return np.divide(sums, counts, out=np.zeros_like(sums), where=counts > 0)
+
+
+class _PlaneValues(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx: Any, spatial_count: int, *groups: Tensor) -> Tensor:  # type: ignore[override]
+        from dyngs.losses import plane_kernels
+
+        spatial, temporal = groups[:spatial_count], groups[spatial_count:]
+        dtype = str(groups[0].dtype)
+        values = [0.0, 0.0, 0.0]
+        if spatial:
+            counts = _counts(spatial, (1, 1))
+            sums = _per_plane(plane_kernels.spatial_sums, _planes(spatial), dtype)
+            values[0] = float(_means(sums, counts).sum(axis=1).mean())
+        if temporal:
+            # Second differences along time, and |1 − p| over every cell (R0 − 0 columns).
+            counts = _counts(temporal, (2, 0))
+            counts[:, 1] = [g[0].numel() for g in temporal for _ in range(len(g))]
+            sums = _per_plane(plane_kernels.temporal_sums, _planes(temporal), dtype)
+            values[1], values[2] = _means(sums, counts).mean(axis=0).tolist()
+        ctx.spatial_count = spatial_count
+        ctx.save_for_backward(*groups)
+        return torch.tensor(values, dtype=groups[0].dtype)
+
+    @staticmethod
+    def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
+        from dyngs.losses import plane_kernels
+
+        groups = ctx.saved_tensors
+        spatial, temporal = groups[: ctx.spatial_count], groups[ctx.spatial_count :]
+        g_tv, g_curve, g_pull = grad.double().tolist()
+        grads = tuple(torch.empty_like(g) for g in groups)
+        dtype = str(grad.dtype)
+        # A plane's sum enters its term as sum ÷ count, and the term is the mean over
+        # planes: the weight on a sum is the upstream gradient ÷ (planes × count).
+        if spatial:
+            planes = _planes(spatial)
+            upstream = np.full((len(planes), 2), g_tv / len(planes))
+            weights = _means(upstream, _counts(spatial, (1, 1)))
+            run_kernel(plane_kernels.spatial_grads, thread_count(None), dtype, planes, weights,
+                       _planes(grads[: len(spatial)]))  # fmt: skip
+        if temporal:
+            planes = _planes(temporal)
+            counts = _counts(temporal, (2, 0))
+            counts[:, 1] = [p.size for p in planes]
+            upstream = np.tile([g_curve, g_pull], (len(planes), 1)) / len(planes)
+            run_kernel(plane_kernels.temporal_grads, thread_count(None), dtype, planes,
+                       _means(upstream, counts), _planes(grads[len(spatial) :]))  # fmt: skip
+        return (None, *grads)
