@@ -462,13 +462,13 @@ class DynamicGaussians(nn.Module):
         _check_time(t)
         c = self.canonical
         raw: dict[str, Tensor] = dict(c.params())
-        chosen: Int[Tensor, " M"] | None = None
-        if only is not None:
-            wanted = self.dynamic & only
-            if not bool(wanted.any()):
-                return raw
-            chosen = None if bool(wanted.all()) else wanted.nonzero().squeeze(1)
         if deform and self.any_dynamic():
+            chosen: Int[Tensor, " M"] | None = None
+            if only is not None:
+                wanted = self.dynamic & only
+                if not bool(wanted.any()):
+                    return raw
+                chosen = None if bool(wanted.all()) else wanted.nonzero().squeeze(1)
             d, index = self.deltas(t, chosen)
             # A Gaussian with a non-finite parameter is culled when drawn, but its activation
             # still passes NaN back (exp(inf) · 0); cut its deltas off so that NaN never

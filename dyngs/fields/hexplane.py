@@ -370,14 +370,12 @@ class HexPlaneField(nn.Module):
             for plane, (index, slot) in enumerate(where):
                 view = self.grids[index][slot]
                 (spatial if plane < _SPATIAL_PLANES else temporal).append(view)
-        kinds = [is_time for groups in self._groups for _, _, is_time in groups]
-        stacked = [self.grids[index] for groups in self._groups for index, _, _ in groups]
-        return PlaneGrids(
-            spatial=spatial,
-            temporal=temporal,
-            spatial_groups=[g for g, is_time in zip(stacked, kinds, strict=True) if not is_time],
-            temporal_groups=[g for g, is_time in zip(stacked, kinds, strict=True) if is_time],
-        )
+        stacked: tuple[list[Tensor], list[Tensor]] = ([], [])  # spatial, temporal
+        for groups in self._groups:
+            for index, _, is_time in groups:
+                stacked[is_time].append(self.grids[index])
+        return PlaneGrids(spatial=spatial, temporal=temporal, spatial_groups=stacked[0],
+                          temporal_groups=stacked[1])  # fmt: skip
 
     def extra_repr(self) -> str:
         c = self.config

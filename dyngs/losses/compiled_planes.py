@@ -46,13 +46,17 @@ def _planes(groups: tuple[Tensor, ...]) -> tuple[np.ndarray, ...]:
     return tuple(plane for g in groups for plane in g.detach().numpy())
 
 
-def _counts(groups: tuple[Tensor, ...], along: tuple[int, int]) -> np.ndarray:
-    """[planes, 2]: the terms in each plane's two sums, F·(R1 − along[0])·R0 and
-    F·R1·(R0 − along[1]), 0 where the plane is too short for them."""
+def _counts(groups: tuple[Tensor, ...], temporal: bool) -> np.ndarray:
+    """[planes, 2]: the terms in each plane's two sums, 0 where the plane is too short for
+    them. Spatial: the steps along R1 and along R0, F·(R1 − 1)·R0 and F·R1·(R0 − 1).
+    Temporal: the second differences in time, F·(T − 2)·R, and every cell, F·T·R."""
     rows = []
     for g in groups:
         _, f, r1, r0 = g.shape
-        rows += [(f * max(r1 - along[0], 0) * r0, f * r1 * max(r0 - along[1], 0))] * len(g)
+        if temporal:
+            rows += [(f * max(r1 - 2, 0) * r0, f * r1 * r0)] * len(g)
+        else:
+            rows += [(f * max(r1 - 1, 0) * r0, f * r1 * max(r0 - 1, 0))] * len(g)
     return np.array(rows, dtype=np.float64)
 
 
@@ -77,16 +81,13 @@ class _PlaneValues(torch.autograd.Function):
         spatial, temporal = groups[:spatial_count], groups[spatial_count:]
         dtype = str(groups[0].dtype)
         values = [0.0, 0.0, 0.0]
+        ctx.counts = (_counts(spatial, temporal=False), _counts(temporal, temporal=True))
         if spatial:
-            counts = _counts(spatial, (1, 1))
             sums = _per_plane(plane_kernels.spatial_sums, _planes(spatial), dtype)
-            values[0] = float(_means(sums, counts).sum(axis=1).mean())
+            values[0] = float(_means(sums, ctx.counts[0]).sum(axis=1).mean())
         if temporal:
-            # Second differences along time, and |1 − p| over every cell (R0 − 0 columns).
-            counts = _counts(temporal, (2, 0))
-            counts[:, 1] = [g[0].numel() for g in temporal for _ in range(len(g))]
             sums = _per_plane(plane_kernels.temporal_sums, _planes(temporal), dtype)
-            values[1], values[2] = _means(sums, counts).mean(axis=0).tolist()
+            values[1], values[2] = _means(sums, ctx.counts[1]).mean(axis=0).tolist()
         ctx.spatial_count = spatial_count
         ctx.save_for_backward(*groups)
         return torch.tensor(values, dtype=groups[0].dtype)
@@ -105,14 +106,12 @@ class _PlaneValues(torch.autograd.Function):
         if spatial:
             planes = _planes(spatial)
             upstream = np.full((len(planes), 2), g_tv / len(planes))
-            weights = _means(upstream, _counts(spatial, (1, 1)))
+            weights = _means(upstream, ctx.counts[0])
             run_kernel(plane_kernels.spatial_grads, thread_count(None), dtype, planes, weights,
                        _planes(grads[: len(spatial)]))  # fmt: skip
         if temporal:
             planes = _planes(temporal)
-            counts = _counts(temporal, (2, 0))
-            counts[:, 1] = [p.size for p in planes]
             upstream = np.tile([g_curve, g_pull], (len(planes), 1)) / len(planes)
             run_kernel(plane_kernels.temporal_grads, thread_count(None), dtype, planes,
-                       _means(upstream, counts), _planes(grads[len(spatial) :]))  # fmt: skip
+                       _means(upstream, ctx.counts[1]), _planes(grads[len(spatial) :]))  # fmt: skip
         return (None, *grads)
