@@ -11,6 +11,8 @@ import math
 import pytest
 import torch
 
+from dyngs.config import LossConfig
+from dyngs.engine.objective import Objective
 from dyngs.fields import DeformationHeadConfig, HexPlaneConfig
 from dyngs.model import DynamicGaussians, GaussianConfig
 from dyngs.renderers import RENDERERS
@@ -105,3 +107,10 @@ def test_with_no_gaussian_present_nothing_is_deformed() -> None:
     assert rows == []  # the field never ran
     assert not bool(out.visible.any())
     assert torch.equal(out.rgb, torch.ones_like(out.rgb))
+
+
+def test_steps_deform_every_gaussian_when_a_term_reads_them() -> None:
+    generator = torch.Generator()
+    assert Objective(LossConfig(), None, 0.1, generator).absent_below == ABSENT_BELOW  # type: ignore[arg-type]
+    rigid = Objective(LossConfig(arap=0.1), None, 0.1, generator)  # type: ignore[arg-type]
+    assert rigid.absent_below == 0.0

@@ -50,7 +50,7 @@ from dyngs.engine.smoothing import refresh_filter
 from dyngs.engine.writer import Writer
 from dyngs.fields.base import Croppable
 from dyngs.model import DynamicGaussians
-from dyngs.renderers.base import ContributionRenderer, Renderer, RenderOutput
+from dyngs.renderers.base import ABSENT_BELOW, ContributionRenderer, Renderer, RenderOutput
 from dyngs.types import Camera, Gaussians
 
 
@@ -335,7 +335,7 @@ def largest_shares(
     drawn: tuple[float, Gaussians] | None = None
     for camera, t in poses:
         if drawn is None or drawn[0] != t:
-            drawn = (t, model.at(t))
+            drawn = (t, model.at(t, absent_below=ABSENT_BELOW))
         out = renderer.with_contribution(drawn[1], camera, background)
         assert out.contribution is not None
         torch.maximum(importance, out.contribution.to(importance.dtype), out=importance)

@@ -35,7 +35,7 @@ from dyngs.losses.tv import plane_roughness, plane_tv
 from dyngs.model import DynamicGaussians
 from dyngs.neighbors import knn
 from dyngs.registry import Registry
-from dyngs.renderers.base import RenderOutput
+from dyngs.renderers.base import ABSENT_BELOW, RenderOutput
 from dyngs.types import Gaussians
 
 
@@ -170,6 +170,14 @@ class Objective:
                 raise ConfigError(f"loss term {name!r} returned shape {tuple(value.shape)}")
             terms[name] = cfg.extra[name] * value
         return terms
+
+    @property
+    def absent_below(self) -> float:
+        """The presence under which a step may leave a Gaussian undeformed
+        (`DynamicGaussians.at`): the renderers' α floor when only the drawn image is read,
+        0 (deform all) when a term reads the Gaussians themselves (the rigidity term, and
+        any plugin term, which is handed them)."""
+        return 0.0 if self.config.arap > 0 or self.extra else ABSENT_BELOW
 
     def other_times(self, model: DynamicGaussians, views: int) -> list[float | None]:
         """The rigidity term's random other time for each of a step's `views` views, drawn

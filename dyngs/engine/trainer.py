@@ -264,8 +264,8 @@ class Trainer:
         (over the step's view count) sent backward, its densification statistics taken."""
         model, views = self.model, self.config.batch_views
         batch = self.data.train_batch(index)
-        started = time.perf_counter()
-        gaussians = model.at(min(1.0, max(0.0, batch.time + shift)), sh_degree=probe)
+        started, t = time.perf_counter(), min(1.0, max(0.0, batch.time + shift))
+        gaussians = model.at(t, sh_degree=probe, absent_below=self.objective.absent_below)
         self.counters.deformation_seconds += time.perf_counter() - started if model.deforms else 0
         out = self.lifecycle.render(self.renderer, gaussians, batch.camera, self.data.background)
         self.nonfinite_culled += out.num_nonfinite.to(self.nonfinite_culled.device)

@@ -191,9 +191,9 @@ def test_importance_is_the_largest_share_of_any_view_of_the_window(tmp_path: Pat
     times: list[float] = []
     deform = trainer.model.at
 
-    def counted(t: float) -> Gaussians:
+    def counted(t: float, absent_below: float = 0.0) -> Gaussians:
         times.append(t)
-        return deform(t)
+        return deform(t, absent_below=absent_below)
 
     trainer.model.at = counted  # type: ignore[method-assign, assignment]
     torch.testing.assert_close(
