@@ -23,8 +23,8 @@ class OptimConfig:
     """Learning rates: initial → final, decayed exponentially over the run.
 
     Gaussian rates are those of 3D Gaussian Splatting (Kerbl et al. 2023); field rates are
-    about three times those of 4D Gaussian Splatting (Wu et al. 2024). Position rates are
-    multiplied by the scene's extent so they mean the same on any scene scale.
+    ten times those of 4D Gaussian Splatting (Wu et al. 2024). Position rates are multiplied
+    by the scene's extent so they mean the same on any scene scale.
     """
 
     means: tuple[float, float] = (1.6e-4, 1.6e-6)
@@ -43,14 +43,14 @@ class OptimConfig:
     frame's spacing on monocular sequences, so an object moving across a gap in the
     training times was drawn as two sets of Gaussians cross-fading, faint in between
     (mujoco-texture: +2.6 and +6.2 dB at 3e-3 over two seeds; docs/ACCURACY.md)."""
-    grid: tuple[float, float] = (5e-3, 5e-5)
-    """Feature planes of a plane-based field: about 3× 4DGaussians' rates (1.6e-3 → 1.6e-5).
-    Every training step sees one view, and at 10× theirs (the default until 2026-11-29,
-    chosen on 1 500-step runs) the shared deformation chased each view: a third of that
-    gained every MuJoCo scene about a dB, where 4DGaussians' own rates lost the moving
+    grid: tuple[float, float] = (1.6e-2, 1.6e-4)
+    """Feature planes of a plane-based field: 10× 4DGaussians' rates, chosen on 1 500-step
+    runs (docs/TRAINING.md). Which rate is best depends on the run: a third of this gained
+    every MuJoCo run at its 9 500-10 600 data-sized steps about a dB, and cost hfu-3cam,
+    ~3 000 steps in its 20-minute budget, 0.9 dB; 4DGaussians' own rates lost the moving
     objects (docs/ACCURACY.md, "The deformation's learning rates")."""
-    network: tuple[float, float] = (5e-4, 5e-6)
-    """MLP weights of the field and the deformation head (about 3× 4DGaussians', as above)."""
+    network: tuple[float, float] = (1.6e-3, 1.6e-5)
+    """MLP weights of the field and the deformation head (10× 4DGaussians', as above)."""
     eps: float = 1e-15
     """Adam's epsilon; 3DGS uses 1e-15 so tiny gradients still move parameters."""
     fused: bool = True
