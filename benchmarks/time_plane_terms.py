@@ -15,22 +15,21 @@ by round in one process. Medians over --repeats rounds after a warm-up; the figu
 from __future__ import annotations
 
 import argparse
-import statistics
 import sys
-import time
 from pathlib import Path
 
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from time_products import interleaved_medians, perturbed_field  # noqa: E402
 
 from dyngs.config import LossConfig  # noqa: E402
 from dyngs.engine.objective import plane_terms  # noqa: E402
-from dyngs.fields import HexPlaneConfig  # noqa: E402
 from dyngs.fields.base import PlaneGrids  # noqa: E402
 from dyngs.tools.common import write_report  # noqa: E402
-from dyngs.types import SceneBox  # noqa: E402
 
 FIELDS = {
     "demo": ((35, 35, 35, 13), 32),
@@ -40,30 +39,18 @@ FIELDS = {
 
 def time_field(resolution: tuple[int, ...], features: int, repeats: int) -> dict[str, float]:
     """Median ms of the default plane terms forward and backward, each way."""
-    generator = torch.Generator().manual_seed(0)
-    box = SceneBox((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
-    field = HexPlaneConfig(resolution=resolution, features=features).build(box, generator=generator)
-    with torch.no_grad():
-        for grid in field.grids:  # departures from the start, as after some training
-            grid.add_(0.1 * torch.randn(grid.shape, generator=generator))
+    field, _ = perturbed_field(resolution, features, torch.Generator().manual_seed(0))
     weights = LossConfig()
 
-    def planes(way: str) -> PlaneGrids:
+    def step(way: str) -> None:
         grouped = field.planes()
-        if way == "compiled":
-            return grouped
-        return PlaneGrids(spatial=grouped.spatial, temporal=grouped.temporal)  # no groups
+        if way == "pytorch":  # the same planes without their groups: the reference path
+            grouped = PlaneGrids(spatial=grouped.spatial, temporal=grouped.temporal)
+        terms = plane_terms(weights, grouped)
+        torch.stack(list(terms.values())).sum().backward()
 
-    times: dict[str, list[float]] = {"pytorch": [], "compiled": []}
-    for round_ in range(repeats + 3):
-        for way, spent in times.items():
-            field.zero_grad()
-            started = time.perf_counter()
-            terms = plane_terms(weights, planes(way))
-            torch.stack(list(terms.values())).sum().backward()
-            if round_ >= 3:
-                spent.append(1e3 * (time.perf_counter() - started))
-    return {way: statistics.median(spent) for way, spent in times.items()}
+    return interleaved_medians(("pytorch", "compiled"), lambda _way: field.zero_grad(), step,
+                               repeats)  # fmt: skip
 
 
 def main() -> None:

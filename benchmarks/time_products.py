@@ -16,6 +16,7 @@ import argparse
 import statistics
 import sys
 import time
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
 import torch
@@ -24,40 +25,68 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from dyngs.fields import DeformationHeadConfig, HexPlaneConfig, hexplane  # noqa: E402
+from dyngs.fields.hexplane import HexPlaneField  # noqa: E402
 from dyngs.tools.common import write_report  # noqa: E402
 from dyngs.types import SceneBox  # noqa: E402
 
 WAYS = {"pytorch": hexplane.plane_products, "compiled": hexplane.compiled_products}
 
 
+WARMUP = 3
+"""Rounds run before timing starts."""
+
+
+def perturbed_field(
+    resolution: tuple[int, ...], features: int, generator: torch.Generator
+) -> tuple[HexPlaneField, SceneBox]:
+    """A HexPlane field over the box [-1, 1]³ whose planes have departed from their
+    static start (random departures of 0.1), as after some training; and the box."""
+    box = SceneBox((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
+    field = HexPlaneConfig(resolution=resolution, features=features).build(box, generator=generator)
+    with torch.no_grad():
+        for grid in field.grids:
+            grid.add_(0.1 * torch.randn(grid.shape, generator=generator))
+    return field, box
+
+
+def interleaved_medians(
+    ways: Iterable[str], prepare: Callable[[str], None], step: Callable[[str], None],
+    repeats: int,
+) -> dict[str, float]:  # fmt: skip
+    """Median ms of `step(way)` for each way, the ways taking turns round by round (so
+    that a busy spell of the machine slows them alike), over `repeats` rounds after
+    `WARMUP`; `prepare(way)` runs before each timed call, outside the timing."""
+    times: dict[str, list[float]] = {way: [] for way in ways}
+    for round_ in range(repeats + WARMUP):
+        for way, spent in times.items():
+            prepare(way)
+            started = time.perf_counter()
+            step(way)
+            if round_ >= WARMUP:
+                spent.append(1e3 * (time.perf_counter() - started))
+    return {way: statistics.median(spent) for way, spent in times.items()}
+
+
 def time_width(features: int, points: int, repeats: int) -> dict[str, float]:
     """Median ms of the field and head forward and backward, each way."""
     generator = torch.Generator().manual_seed(0)
-    box = SceneBox((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
-    config = HexPlaneConfig(resolution=(35, 35, 35, 13), features=features)
-    field = config.build(box, generator=generator)
-    with torch.no_grad():
-        for grid in field.grids:  # departures from the static start, as after training
-            grid.add_(0.1 * torch.randn(grid.shape, generator=generator))
+    field, box = perturbed_field((35, 35, 35, 13), features, generator)
     head = DeformationHeadConfig().build(field.out_dim, box, generator=generator)
     xyz = (2 * torch.rand(points, 3, generator=generator) - 1).requires_grad_(True)
     t = torch.rand(points, 1, generator=generator)
 
-    def step() -> None:
+    def use(way: str) -> None:
+        hexplane.compiled_products = WAYS[way]  # what the field's forward calls
+
+    def step(_way: str) -> None:
         deltas = head(field(xyz, t))
         assert deltas.quats is not None
         (deltas.means.sum() + deltas.quats.sum()).backward()
 
-    times: dict[str, list[float]] = {way: [] for way in WAYS}
-    for round_ in range(repeats + 3):
-        for way, combine in WAYS.items():
-            hexplane.compiled_products = combine  # what the field's forward calls
-            started = time.perf_counter()
-            step()
-            if round_ >= 3:
-                times[way].append(1e3 * (time.perf_counter() - started))
-    hexplane.compiled_products = WAYS["compiled"]
-    return {way: statistics.median(spent) for way, spent in times.items()}
+    try:
+        return interleaved_medians(WAYS, use, step, repeats)
+    finally:
+        hexplane.compiled_products = WAYS["compiled"]
 
 
 def main() -> None:
