@@ -74,10 +74,14 @@ class TimeBudget:
             return None
         return wanted
 
-    def said(self, step: int, elapsed: float, planned: int) -> str:
-        """The line a re-plan prints."""
+    def said(self, step: int, elapsed: float, planned: int, deformation_scale: float) -> str:
+        """The line a re-plan prints: the steps it chose, and the share of its rates the
+        deformation learns at for that many (`optim.deformation_rate_scale`)."""
         left = max(self.seconds - elapsed, 0.0)
-        return f"[budget] step {step}: {planned} steps fit the {left:.0f} s left"
+        return (
+            f"[budget] step {step}: {planned} steps fit the {left:.0f} s left "
+            f"(the deformation at {deformation_scale:.2f}× its rates)"
+        )
 
     def state_dict(self) -> dict[str, Any]:
         return {"seconds": self.seconds, "ceiling": self.ceiling, "marks": list(self.marks)}

@@ -22,9 +22,11 @@ from dyngs.model import DynamicGaussians
 class OptimConfig:
     """Learning rates: initial → final, decayed exponentially over the run.
 
-    Gaussian rates are those of 3D Gaussian Splatting (Kerbl et al. 2023); field rates are
-    ten times those of 4D Gaussian Splatting (Wu et al. 2024). Position rates are multiplied
-    by the scene's extent so they mean the same on any scene scale.
+    Gaussian rates are those of 3D Gaussian Splatting (Kerbl et al. 2023); the deformation's
+    are ten times those of 4D Gaussian Splatting (Wu et al. 2024) for a run of up to
+    `deformation_steps` steps, and less for a longer one (`deformation_rate_scale`).
+    Position rates are multiplied by the scene's extent so they mean the same on any scene
+    scale.
     """
 
     means: tuple[float, float] = (1.6e-4, 1.6e-6)
@@ -44,13 +46,22 @@ class OptimConfig:
     training times was drawn as two sets of Gaussians cross-fading, faint in between
     (mujoco-texture: +2.6 and +6.2 dB at 3e-3 over two seeds; docs/ACCURACY.md)."""
     grid: tuple[float, float] = (1.6e-2, 1.6e-4)
-    """Feature planes of a plane-based field: 10× 4DGaussians' rates, chosen on 1 500-step
-    runs (docs/TRAINING.md). Which rate is best depends on the run: a third of this gained
-    every MuJoCo run at its 9 500-10 600 data-sized steps about a dB, and cost hfu-3cam,
-    ~3 000 steps in its 20-minute budget, 0.9 dB; 4DGaussians' own rates lost the moving
-    objects (docs/ACCURACY.md, "The deformation's learning rates")."""
+    """Feature planes of a plane-based field, for a run of `deformation_steps` steps: 10×
+    4DGaussians' rates, chosen on 1 500-step runs (docs/TRAINING.md)."""
     network: tuple[float, float] = (1.6e-3, 1.6e-5)
     """MLP weights of the field and the deformation head (10× 4DGaussians', as above)."""
+    deformation_steps: int | None = 3000
+    """A run of more steps than this divides the deformation's rates (`grid`, `network`)
+    by steps / `deformation_steps`, down to `deformation_floor` of them, so that rate ×
+    steps stays near 4DGaussians' rate × 30 000 (Wu et al. 2024 train ~20 000 steps at
+    their rates). Every step moves the field that all Gaussians and times share towards one
+    view; the more steps a run has, the smaller each move can be. Measured: the MuJoCo
+    scenes' ~10 000 steps gained a dB at a third of the rates, hfu-3cam's ~3 000 lost
+    0.9 dB at a third (docs/ACCURACY.md, "The deformation's learning rates"). None: the
+    rates as given, for a run of any length."""
+    deformation_floor: float = 0.3
+    """The least share of `grid` and `network` a long run gets: the rates near a third were
+    the slowest measured to help; at a tenth the moving objects were lost."""
     eps: float = 1e-15
     """Adam's epsilon; 3DGS uses 1e-15 so tiny gradients still move parameters."""
     fused: bool = True
@@ -116,20 +127,34 @@ def _fusable(params: Sequence[Tensor]) -> bool:
     return all(p.device.type in FUSED_DEVICES and p.is_floating_point() for p in params)
 
 
+def deformation_rate_scale(config: OptimConfig, steps: int) -> float:
+    """The share of `grid` and `network` a run of `steps` steps learns at:
+    `deformation_steps` / steps, within [`deformation_floor`, 1] (see OptimConfig)."""
+    if config.deformation_steps is None or steps <= config.deformation_steps:
+        return 1.0
+    return max(config.deformation_steps / steps, config.deformation_floor)
+
+
 def set_learning_rates(
-    optimizer: torch.optim.Optimizer, progress: float, deformation_progress: float | None = None
+    optimizer: torch.optim.Optimizer,
+    progress: float,
+    deformation_progress: float | None = None,
+    deformation_scale: float = 1.0,
 ) -> None:
     """Log-linear interpolation from lr_start to lr_end as progress goes from 0 to 1; the
-    groups in DEFORMATION_GROUPS follow `deformation_progress` instead, when given."""
+    groups in DEFORMATION_GROUPS follow `deformation_progress` instead, when given, and
+    are multiplied by `deformation_scale`."""
     for g in optimizer.param_groups:
-        own = progress
-        if deformation_progress is not None and g["name"] in DEFORMATION_GROUPS:
-            own = deformation_progress
+        own, scale = progress, 1.0
+        if g["name"] in DEFORMATION_GROUPS:
+            own = progress if deformation_progress is None else deformation_progress
+            scale = deformation_scale
         own = min(max(own, 0.0), 1.0)
         start, end = g["lr_start"], g["lr_end"]
-        g["lr"] = (
+        rate = (
             start if start == end else math.exp((1 - own) * math.log(start) + own * math.log(end))
         )
+        g["lr"] = rate * scale
 
 
 def replace_rows(

@@ -21,6 +21,7 @@ import dataclasses
 import math
 
 from dyngs.config import TrainConfig
+from dyngs.engine.optim import deformation_rate_scale
 
 
 def length(config: TrainConfig) -> int:
@@ -87,15 +88,18 @@ def is_frontier_step(config: TrainConfig, step: int) -> bool:
     )
 
 
-def learning_progress(config: TrainConfig, step: int) -> tuple[float, float | None]:
-    """How far the learning rates have decayed: the run's progress, and the deformation's
-    (from the step the time window is full) when `--optim.hold-deformation-rates`."""
+def learning_progress(config: TrainConfig, step: int) -> tuple[float, float | None, float]:
+    """`set_learning_rates`' arguments at `step`: how far the learning rates have decayed
+    (the run's progress, and the deformation's from the step the time window is full when
+    `--optim.hold-deformation-rates`), and the share of its rates the deformation learns
+    at over the steps now planned (`deformation_rate_scale`)."""
     at, total = position(config, step), length(config)
     progress = at / max(total, 1)
+    scale = deformation_rate_scale(config.optim, config.steps)
     if not config.optim.hold_deformation_rates:
-        return progress, None
+        return progress, None, scale
     full = window_full_step(config)
-    return progress, (at - full) / max(total - full, 1)
+    return progress, (at - full) / max(total - full, 1), scale
 
 
 def refine_stop(config: TrainConfig) -> float:
@@ -197,6 +201,12 @@ def plan_notes(config: TrainConfig, sized: str | None) -> list[str | None]:
     notes = [schedule_warning(config)]
     if sized is not None:
         notes.append(f"[schedule] {config.steps} steps, sized from the data ({sized})")
+    scale = deformation_rate_scale(config.optim, config.steps)
+    if scale < 1:
+        notes.append(
+            f"[rates] the deformation learns at {scale:.2f}× --optim.grid and --optim.network "
+            f"over {config.steps} steps (--optim.deformation-steps)"
+        )
     if config.time_budget is not None:
         notes.append(
             f"[budget] {config.time_budget:g} min of training: the {config.steps} planned "

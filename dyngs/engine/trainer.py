@@ -372,12 +372,10 @@ class Trainer:
         # Rank 0's measured rate decides for every rank: all must plan the same steps.
         planned = self.group.decide(lambda: budget.plan(self.step, seconds, self.config.steps))
         if planned is not None:
-            self.set_steps(planned)
-            said = self.budget.said(self.step, self.counters.train_seconds, planned)
+            self.lifecycle.config = schedules.repaced(self.config, self.step, planned)
+            scale = schedules.learning_progress(self.config, self.step)[2]
+            said = self.budget.said(self.step, self.counters.train_seconds, planned, scale)
             self.console.print(said, highlight=False, markup=False)
-
-    def set_steps(self, steps: int) -> None:
-        self.lifecycle.config = schedules.repaced(self.config, self.step, steps)
 
     def log(self, stats: StepStats, rate: float) -> str:
         """Write the scalars of the last step and return its progress line."""

@@ -4,9 +4,11 @@
 from __future__ import annotations
 
 import dataclasses
+import io
 from pathlib import Path
 
 import pytest
+from rich.console import Console
 
 from dyngs.config import TrainConfig
 from dyngs.engine import budget as budget_module
@@ -50,6 +52,7 @@ def test_small_moves_and_the_last_tenth_keep_the_plan() -> None:
 
 def test_the_trainer_replans_saves_and_resumes_its_plan(tmp_path: Path) -> None:
     trainer = tiny_trainer(tmp_path, max_iters=400, time_budget=1.0)  # 60 s
+    trainer.console = Console(file=io.StringIO(), width=200)
     assert trainer.budget is not None and trainer.config.steps == 400
     trainer.step, trainer.counters.train_seconds = 1, 0.0  # in the warm-up: no re-plan
     trainer.replan()
@@ -59,6 +62,8 @@ def test_the_trainer_replans_saves_and_resumes_its_plan(tmp_path: Path) -> None:
     trainer.step, trainer.counters.train_seconds = 110, 55.0  # 2 steps per second
     trainer.replan()
     assert trainer.config.steps == 120  # 5 s left: 10 more steps
+    said = trainer.console.file.getvalue()  # type: ignore[attr-defined]
+    assert "120 steps fit the 5 s left (the deformation at 1.00× its rates)" in said
     assert trainer.config.pace == (110, 110.0, 400)  # the 400-step schedule, sped up
     assert trainer.lifecycle.config is trainer.config
     trainer.save()

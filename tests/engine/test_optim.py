@@ -9,7 +9,13 @@ import torch
 from torch import nn
 
 from dyngs.engine import schedules
-from dyngs.engine.optim import OptimConfig, build_optimizer, replace_rows, set_learning_rates
+from dyngs.engine.optim import (
+    OptimConfig,
+    build_optimizer,
+    deformation_rate_scale,
+    replace_rows,
+    set_learning_rates,
+)
 from tests.engine.helpers import tiny_trainer
 
 
@@ -80,6 +86,34 @@ def test_deformation_rates_hold_until_the_time_window_is_full(tmp_path: Path) ->
     assert plain_grid["lr"] == pytest.approx(
         plain_grid["lr_start"] * (plain_grid["lr_end"] / plain_grid["lr_start"]) ** 0.3
     )
+
+
+def test_a_longer_run_moves_the_deformation_in_smaller_steps() -> None:
+    sized = OptimConfig(deformation_steps=3000, deformation_floor=0.3)
+    assert deformation_rate_scale(sized, 1500) == deformation_rate_scale(sized, 3000) == 1.0
+    assert deformation_rate_scale(sized, 6000) == pytest.approx(0.5)  # rate × steps held
+    assert deformation_rate_scale(sized, 9000) == pytest.approx(1 / 3)
+    assert deformation_rate_scale(sized, 40_000) == 0.3  # never below the floor
+    fixed = OptimConfig(deformation_steps=None)
+    assert deformation_rate_scale(fixed, 40_000) == 1.0
+
+
+def test_the_scale_reaches_the_deformation_groups_alone(tmp_path: Path) -> None:
+    # 200 steps where the rates are those of 50: the deformation learns at a quarter.
+    optim = OptimConfig(deformation_steps=50, deformation_floor=0.1)
+    trainer = tiny_trainer(tmp_path, max_iters=200, optim=optim)
+    plain = tiny_trainer(tmp_path / "plain", max_iters=200)
+    for step in (0, 100, 200):
+        set_learning_rates(trainer.optimizer, *schedules.learning_progress(trainer.config, step))
+        set_learning_rates(plain.optimizer, *schedules.learning_progress(plain.config, step))
+        for scaled, unscaled in zip(
+            trainer.optimizer.param_groups, plain.optimizer.param_groups, strict=True
+        ):
+            share = 0.25 if scaled["name"] in ("grid", "network") else 1.0
+            assert scaled["lr"] == pytest.approx(share * unscaled["lr"], rel=1e-12)
+    # The run says so before its first step, and a budget's re-plan says the new share.
+    assert any("0.25× --optim.grid" in note for note in trainer.notes())
+    assert not any("--optim.grid" in note for note in plain.notes())
 
 
 def test_replace_rows_moves_and_zeroes_moments() -> None:
