@@ -203,9 +203,10 @@ def plan_notes(config: TrainConfig, sized: str | None) -> list[str | None]:
         notes.append(f"[schedule] {config.steps} steps, sized from the data ({sized})")
     scale = deformation_rate_scale(config.optim, config.steps)
     if scale < 1:
+        resized = "; each re-plan of the budget sizes it again" if config.time_budget else ""
         notes.append(
             f"[rates] the deformation learns at {scale:.2f}× --optim.grid and --optim.network "
-            f"over {config.steps} steps (--optim.deformation-steps)"
+            f"over {config.steps} steps (--optim.deformation-steps){resized}"
         )
     if config.time_budget is not None:
         notes.append(

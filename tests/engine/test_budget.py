@@ -15,6 +15,7 @@ from dyngs.engine import budget as budget_module
 from dyngs.engine import schedules
 from dyngs.engine.budget import TimeBudget
 from dyngs.engine.capacity import STEPS_LIMITS, training_steps
+from dyngs.engine.optim import OptimConfig
 from dyngs.errors import ConfigError
 from tests.engine.helpers import tiny_trainer
 
@@ -51,9 +52,15 @@ def test_small_moves_and_the_last_tenth_keep_the_plan() -> None:
 
 
 def test_the_trainer_replans_saves_and_resumes_its_plan(tmp_path: Path) -> None:
-    trainer = tiny_trainer(tmp_path, max_iters=400, time_budget=1.0)  # 60 s
+    # 60 s; the deformation's rates are those of 200 steps, so 400 planned take half.
+    optim = OptimConfig(deformation_steps=200)
+    trainer = tiny_trainer(tmp_path, max_iters=400, time_budget=1.0, optim=optim)
     trainer.console = Console(file=io.StringIO(), width=200)
     assert trainer.budget is not None and trainer.config.steps == 400
+    assert any(
+        "at 0.50× --optim.grid" in note and "each re-plan of the budget sizes it again" in note
+        for note in trainer.notes()
+    )
     trainer.step, trainer.counters.train_seconds = 1, 0.0  # in the warm-up: no re-plan
     trainer.replan()
     assert trainer.budget.marks == []
@@ -67,7 +74,7 @@ def test_the_trainer_replans_saves_and_resumes_its_plan(tmp_path: Path) -> None:
     assert trainer.config.pace == (110, 110.0, 400)  # the 400-step schedule, sped up
     assert trainer.lifecycle.config is trainer.config
     trainer.save()
-    again = tiny_trainer(tmp_path / "again", max_iters=400, time_budget=1.0)
+    again = tiny_trainer(tmp_path / "again", max_iters=400, time_budget=1.0, optim=optim)
     again.load(trainer.checkpoint_path())
     assert again.config.steps == 120 and again.budget is not None
     assert again.config.pace == trainer.config.pace
