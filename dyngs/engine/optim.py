@@ -15,6 +15,7 @@ import torch
 from jaxtyping import Bool, Int
 from torch import Tensor, nn
 
+from dyngs.errors import ConfigError
 from dyngs.model import DynamicGaussians
 
 
@@ -54,14 +55,15 @@ class OptimConfig:
     """A run of more steps than this divides the deformation's rates (`grid`, `network`)
     by steps / `deformation_steps`, down to `deformation_floor` of them, so that rate ×
     steps stays near 4DGaussians' rate × 30 000 (Wu et al. 2024 train ~20 000 steps at
-    their rates). Every step moves the field that all Gaussians and times share towards one
-    view; the more steps a run has, the smaller each move can be. Measured: the MuJoCo
-    scenes' ~10 000 steps gained a dB at a third of the rates, hfu-3cam's ~3 000 lost
-    0.9 dB at a third (docs/ACCURACY.md, "The deformation's learning rates"). None: the
-    rates as given, for a run of any length."""
+    their rates). Every step moves the field, which all Gaussians and times share, towards
+    one view; a run with more steps can afford smaller moves, and one with fewer needs
+    larger ones: a rate that suits 10 000 steps loses the motion in 3 000, and the other
+    way round (docs/ACCURACY.md, "The deformation's rates sized to the run"). A
+    `--time-budget` run sizes them again at each re-plan. None: the rates as given, for a
+    run of any length."""
     deformation_floor: float = 0.3
-    """The least share of `grid` and `network` a long run gets: the rates near a third were
-    the slowest measured to help; at a tenth the moving objects were lost."""
+    """The least share of `grid` and `network` a long run gets: the slowest rates measured
+    to help; at a tenth the moving objects were lost."""
     eps: float = 1e-15
     """Adam's epsilon; 3DGS uses 1e-15 so tiny gradients still move parameters."""
     fused: bool = True
@@ -74,6 +76,16 @@ class OptimConfig:
     training views' time window widens (`--time-ramp`), and decay them over the rest of
     the run, so that each time is learned at the rate the first ones had. Off by default:
     it did not help consistently across seeds (docs/CAPACITY.md)."""
+
+    def __post_init__(self) -> None:
+        if self.deformation_steps is not None and self.deformation_steps < 1:
+            raise ConfigError(
+                f"--optim.deformation-steps must be ≥ 1 or None, got {self.deformation_steps}"
+            )
+        if not 0.0 < self.deformation_floor <= 1.0:
+            raise ConfigError(
+                f"--optim.deformation-floor must be in (0, 1], got {self.deformation_floor}"
+            )
 
 
 DEFORMATION_GROUPS = ("grid", "network")

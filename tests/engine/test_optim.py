@@ -16,6 +16,7 @@ from dyngs.engine.optim import (
     replace_rows,
     set_learning_rates,
 )
+from dyngs.errors import ConfigError
 from tests.engine.helpers import tiny_trainer
 
 
@@ -96,6 +97,9 @@ def test_a_longer_run_moves_the_deformation_in_smaller_steps() -> None:
     assert deformation_rate_scale(sized, 40_000) == 0.3  # never below the floor
     fixed = OptimConfig(deformation_steps=None)
     assert deformation_rate_scale(fixed, 40_000) == 1.0
+    for bad in ({"deformation_steps": 0}, {"deformation_floor": 0.0}, {"deformation_floor": 2.0}):
+        with pytest.raises(ConfigError, match=r"--optim\.deformation-"):
+            OptimConfig(**bad)
 
 
 def test_the_scale_reaches_the_deformation_groups_alone(tmp_path: Path) -> None:
