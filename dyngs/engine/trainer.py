@@ -45,7 +45,7 @@ from dyngs.engine.evaluate import evaluate
 from dyngs.engine.interrupt import deferred_interrupt
 from dyngs.engine.lifecycle import Lifecycle, densify_statistics
 from dyngs.engine.objective import Objective
-from dyngs.engine.optim import build_optimizer, set_learning_rates
+from dyngs.engine.optim import build_optimizer, deformation_rate_scale, set_learning_rates
 from dyngs.engine.report import Counters, StepStats, log_step, run_summary, write_metrics
 from dyngs.engine.writer import Writer
 from dyngs.errors import ConfigError, UserError
@@ -373,7 +373,7 @@ class Trainer:
         planned = self.group.decide(lambda: budget.plan(self.step, seconds, self.config.steps))
         if planned is not None:
             self.lifecycle.config = schedules.repaced(self.config, self.step, planned)
-            scale = schedules.learning_progress(self.config, self.step)[2]
+            scale = deformation_rate_scale(self.config.optim, planned)
             said = self.budget.said(self.step, self.counters.train_seconds, planned, scale)
             self.console.print(said, highlight=False, markup=False)
 
