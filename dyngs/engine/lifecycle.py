@@ -157,6 +157,10 @@ class Lifecycle:
         cfg = self.config
         if schedules.is_motion_step(cfg, step):
             self.revisit_motion(step)
+        elif self.fixed_motion is not None and schedules.is_pixel_start(cfg, step):
+            self.start_from_pixels(step)
+        elif self.fixed_motion is not None and schedules.is_promotion_step(cfg, step):
+            self.revisit_motion(step, demote=False)
         self.consider_sh_degree(step)
         if schedules.is_filter_step(cfg, step):
             self.refresh_filter()
@@ -238,8 +242,24 @@ class Lifecycle:
         if self.config.motion.separate:
             _ = self.fixed_motion
 
-    def revisit_motion(self, step: int, final: bool = False) -> None:
-        """Revisit the static/dynamic split (`dyngs.engine.motion.revisit`)."""
+    def start_from_pixels(self, step: int) -> None:
+        """End of the warm-up (`--motion.start-from-pixels`): only the Gaussians that most
+        of the fixed cameras that see them see change stay dynamic. The field has not been
+        trained yet, so the others lose no deformation by turning static."""
+        assert self.fixed_motion is not None
+        model = self.model
+        means = model.canonical.means.detach()
+        model.dynamic = self.fixed_motion.evidence(means, self.config.motion)
+        share = model.dynamic_fraction()
+        self.writer.scalar("motion/dynamic_at_start", share, step)
+        self._say(
+            f"[motion] fixed cameras: {share:.1%} of the Gaussians sit where pixels change and "
+            "start dynamic; the rest start static, promoted when they move"
+        )
+
+    def revisit_motion(self, step: int, final: bool = False, demote: bool = True) -> None:
+        """Revisit the static/dynamic split (`dyngs.engine.motion.revisit`); `demote=False`
+        only promotes (while the window widens)."""
         cfg, model, state = self.config, self.model, self.state
         was_dynamic = model.any_dynamic()
         # A static Gaussian's region "keeps an error" when its screen gradient is high enough
@@ -259,8 +279,20 @@ class Lifecycle:
             # objects yet, and a split made then starved the field for good.
             means = model.canonical.means.detach()
             pixels_move = self.fixed_motion.evidence(means, cfg.motion)
+        times = self.motion_times
+        if not demote:  # the field has learned nothing past the window yet
+            train_times = self.data.scene.train.times
+            window = schedules.time_window(cfg, step)
+            seen = train_times[train_times <= max(window, float(train_times.min()))]
+            times = sample_times(seen, cfg.motion.samples)
         became_static, became_dynamic = revisit(
-            model, cfg.motion, self.motion_times, self.pixel_size, wants_motion, pixels_move
+            model,
+            cfg.motion,
+            times,
+            self.pixel_size,
+            wants_motion,
+            pixels_move,
+            demote,
         )
         self.writer.scalar("motion/became_static", became_static, step)
         self.writer.scalar("motion/became_dynamic", became_dynamic, step)

@@ -68,6 +68,13 @@ class MotionConfig:
     than this (largest channel, colours in [0, 1]) sees something that moves away; 0.1 ≈
     25/255 sits well above sensor and compression noise (a few /255 in DyNeRF's still
     regions) and below the contrast of a moving object against what is behind it."""
+    start_from_pixels: bool = False
+    """Fixed cameras: at the end of the warm-up, start only the Gaussians that most of the
+    fixed cameras that see them see change dynamic (the rest static), and until the window
+    is full revisit every `every` steps to promote (never demote) what its pixels, its
+    field or its gradient say moves. Otherwise every Gaussian is dynamic until the first
+    full revisit, once the window spans the sequence: on a real capture that is half a
+    budgeted run's time, most of it spent deforming a still background."""
     crop_field: bool = True
     """At the end of training, cut the field's planes to the span of the dynamic Gaussians
     (the only ones that query it): same features where they sit, no storage elsewhere."""
@@ -160,6 +167,7 @@ def revisit(
     pixel_size: float,
     wants_motion: Tensor,
     pixels_move: Tensor | None = None,
+    demote: bool = True,
 ) -> tuple[int, int]:
     """Revisit the split in place; returns (newly static, newly dynamic) counts.
 
@@ -167,23 +175,24 @@ def revisit(
     unless `pixels_move` marks them (fixed cameras see their pixels change). Static
     Gaussians where the field moves, that `wants_motion` marks (their region keeps an error
     that changes with time) or that `pixels_move` marks become dynamic, keeping their mean
-    pose.
+    pose. `demote=False` only promotes (while the time window widens, a Gaussian that has
+    not moved yet may still be about to).
     """
     c = model.canonical
     everyone = measure_motion(model, times)
     still = is_static(everyone, config, pixel_size)
     pixels = torch.zeros_like(still) if pixels_move is None else pixels_move.to(still.device)
-    demote = model.dynamic & still & ~pixels
+    demoted = model.dynamic & still & ~pixels & demote
     promote = ~model.dynamic & (~still | wants_motion.to(still.device) | pixels)
     # Either way a Gaussian keeps its mean pose: a demoted one takes its mean deformation
     # into its canonical parameters, a promoted one gives the field's mean deformation back.
-    for change, sign in ((demote, 1.0), (promote, -1.0)):
+    for change, sign in ((demoted, 1.0), (promote, -1.0)):
         if bool(change.any()):
             rows = change.nonzero().squeeze(1)
             for name, delta in everyone.mean_deltas.items():
                 getattr(c, name).index_add_(0, rows, delta[rows], alpha=sign)
-    model.dynamic = (model.dynamic & ~demote) | promote
-    return int(demote.sum()), int(promote.sum())
+    model.dynamic = (model.dynamic & ~demoted) | promote
+    return int(demoted.sum()), int(promote.sum())
 
 
 def pixel_motion_maps(

@@ -156,6 +156,26 @@ def is_motion_step(config: TrainConfig, step: int) -> bool:
     )
 
 
+def is_pixel_start(config: TrainConfig, step: int) -> bool:
+    """Whether the split is started from fixed cameras' pixels after `step` steps: at the
+    end of the warm-up, when `--motion.start-from-pixels`."""
+    m = config.motion
+    return m.separate and m.start_from_pixels and step == config.warmup_iters > 0
+
+
+def is_promotion_step(config: TrainConfig, step: int) -> bool:
+    """Whether static Gaussians that move are promoted after `step` steps: every
+    `motion.every` steps while the window widens, after a split started from pixels."""
+    m = config.motion
+    return (
+        m.separate
+        and m.start_from_pixels
+        and step > config.warmup_iters > 0
+        and time_window(config, step) < 1.0
+        and step % m.every == 0
+    )
+
+
 def probe_degree(config: TrainConfig, active: int) -> int | None:
     """The SH band rendered frozen at zero to gather evidence for it, if any."""
     g = config.gaussians

@@ -12,6 +12,7 @@ import torch
 from dyngs.datamanagers.datamanager import DataConfig, load_scene
 from dyngs.datamanagers.fixed_cameras import fixed_camera_groups
 from dyngs.datamanagers.procedural import ProceduralSceneConfig, demo_path, is_on_dynamic_object
+from dyngs.engine import schedules
 from dyngs.engine.densify import DensifyConfig, apply_topology, plan_refinement
 from dyngs.engine.lifecycle import crop_field
 from dyngs.engine.motion import (
@@ -237,6 +238,65 @@ def test_the_rig_promotes_what_its_pixels_see_move_at_every_revisit(tmp_path: Pa
         trainer.step, final=True
     )  # the last word is measured motion's alone
     assert not model.any_dynamic()
+
+
+def test_a_promotion_only_revisit_never_demotes() -> None:
+    velocity = torch.zeros(3, 3)
+    velocity[2, 0] = 1.0  # moves; the other two hold still
+    model = _ScriptedMotion(velocity, torch.zeros(3, 3))
+    model.dynamic[:] = torch.tensor([True, False, False])
+    before = model.canonical.means.detach().clone()
+    wants_motion = torch.zeros(3, dtype=torch.bool)
+
+    counts = revisit(model, MotionConfig(), [0.0, 1.0], 0.02, wants_motion, demote=False)
+
+    assert counts == (0, 1)  # the still dynamic one stays so; the moving static one is promoted
+    assert model.dynamic.tolist() == [True, False, True]
+    assert torch.equal(model.canonical.means.detach()[:2], before[:2])
+
+
+def test_the_pixel_start_is_scheduled_at_the_warm_up_end_and_promotions_while_it_widens() -> None:
+    motion = MotionConfig(start_from_pixels=True, every=10)
+    config = tiny_config(max_iters=100, warmup_iters=20, time_ramp=0.5, motion=motion)
+    full = schedules.window_full_step(config)
+    assert full == 70
+    # Steps done: after 20 the warm-up is over; the promotions follow, then full revisits.
+    assert [s for s in range(100) if schedules.is_pixel_start(config, s)] == [20]
+    assert [s for s in range(100) if schedules.is_promotion_step(config, s)] == [30, 40, 50, 60]
+    assert [s for s in range(100) if schedules.is_motion_step(config, s)] == [70, 80, 90]
+    off = dataclasses.replace(config, motion=MotionConfig(every=10))
+    assert not any(
+        schedules.is_pixel_start(off, s) or schedules.is_promotion_step(off, s) for s in range(100)
+    )
+
+
+def test_the_rig_starts_from_its_pixels_when_asked(tmp_path: Path) -> None:
+    """`--motion.start-from-pixels`: at the end of the warm-up only the Gaussians on the
+    ball and the cube stay dynamic, before any revisit; the run then trains on with the
+    field queried for those alone."""
+    motion = MotionConfig(start_from_pixels=True)
+    config = tiny_config(data=str(demo_path(RIG)), warmup_iters=2, motion=motion)
+    trainer = Trainer(config, tmp_path, NullWriter())
+    trainer.train_step(0)
+    assert bool(trainer.model.dynamic.all())
+    trainer.train_step(1)  # the warm-up's last step: the pixels decide
+
+    model = trainer.model
+    moving = _on_moving_object(model.canonical.means.detach(), RIG)
+    assert float(model.dynamic[moving].float().mean()) >= 0.98
+    assert float(model.dynamic[~moving].float().mean()) <= 0.1
+    calls = field_calls(model.field)
+    trainer.train_step(2)
+    assert calls == [int(model.dynamic.sum())]
+
+
+def test_without_fixed_cameras_the_pixel_start_changes_nothing(tmp_path: Path) -> None:
+    motion = MotionConfig(start_from_pixels=True)
+    trainer = tiny_trainer(tmp_path, warmup_iters=2, motion=motion)
+    assert trainer.lifecycle.fixed_motion is None
+    for step in range(4):
+        trainer.train_step(step)
+    assert bool(trainer.model.dynamic.all())
 
 
 def test_the_field_is_cut_to_the_dynamic_gaussians_and_a_run_resumes(tmp_path: Path) -> None:
