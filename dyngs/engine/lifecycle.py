@@ -157,9 +157,9 @@ class Lifecycle:
         cfg = self.config
         if schedules.is_motion_step(cfg, step):
             self.revisit_motion(step)
-        elif self.fixed_motion is not None and schedules.is_pixel_start(cfg, step):
+        elif schedules.is_pixel_start(cfg, step) and self.fixed_motion is not None:
             self.start_from_pixels(step)
-        elif self.fixed_motion is not None and schedules.is_promotion_step(cfg, step):
+        elif schedules.is_promotion_step(cfg, step) and self.fixed_motion is not None:
             self.revisit_motion(step, demote=False)
         self.consider_sh_degree(step)
         if schedules.is_filter_step(cfg, step):
@@ -274,9 +274,9 @@ class Lifecycle:
             wants_motion[:] = False
         elif self.fixed_motion is not None:
             # Fixed cameras: a Gaussian where most of the cameras that see it see pixels
-            # change is dynamic. Asked of the Gaussians as they are at each revisit, not at
-            # the end of the warm-up: from a noisy initial cloud nothing sits on the moving
-            # objects yet, and a split made then starved the field for good.
+            # change is dynamic. Asked of the Gaussians as they are at each revisit, not
+            # only at the end of the warm-up: from a noisy initial cloud nothing sits on the
+            # moving objects yet, and a split made then alone starved the field for good.
             means = model.canonical.means.detach()
             pixels_move = self.fixed_motion.evidence(means, cfg.motion)
         times = self.motion_times

@@ -68,13 +68,15 @@ class MotionConfig:
     than this (largest channel, colours in [0, 1]) sees something that moves away; 0.1 ≈
     25/255 sits well above sensor and compression noise (a few /255 in DyNeRF's still
     regions) and below the contrast of a moving object against what is behind it."""
-    start_from_pixels: bool = False
+    start_from_pixels: bool = True
     """Fixed cameras: at the end of the warm-up, start only the Gaussians that most of the
     fixed cameras that see them see change dynamic (the rest static), and until the window
     is full revisit every `every` steps to promote (never demote) what its pixels, its
-    field or its gradient say moves. Otherwise every Gaussian is dynamic until the first
-    full revisit, once the window spans the sequence: on a real capture that is half a
-    budgeted run's time, most of it spent deforming a still background."""
+    field or its gradient say moves. False keeps every Gaussian dynamic until the first
+    full revisit, once the window spans the sequence: on a real capture that was half a
+    budgeted run's time, most of it spent deforming a still background, and every MuJoCo
+    scene trained worse that way (docs/ACCURACY.md, "Fixed cameras start from their
+    pixels")."""
     crop_field: bool = True
     """At the end of training, cut the field's planes to the span of the dynamic Gaussians
     (the only ones that query it): same features where they sit, no storage elsewhere."""

@@ -197,10 +197,12 @@ def test_a_still_scene_trains_as_a_static_scene(tmp_path: Path) -> None:
 
 
 def test_the_rig_splits_the_moving_objects_from_the_still_background(tmp_path: Path) -> None:
-    """On a fixed-camera rig the first revisit marks the Gaussians on the ball and the cube
-    dynamic (their pixels change) and those on the still pedestal and pillar static (a
-    field that has not trained yet moves nothing)."""
-    config = tiny_config(data=str(demo_path(RIG)), warmup_iters=1)
+    """On a fixed-camera rig whose Gaussians all start dynamic (`start_from_pixels=False`)
+    the first revisit marks those on the ball and the cube dynamic (their pixels change)
+    and those on the still pedestal and pillar static (a field that has not trained yet
+    moves nothing)."""
+    motion = MotionConfig(start_from_pixels=False)
+    config = tiny_config(data=str(demo_path(RIG)), warmup_iters=1, motion=motion)
     trainer = Trainer(config, tmp_path, NullWriter())
     trainer.train_step(0)  # the warm-up: every Gaussian starts dynamic
     assert bool(trainer.model.dynamic.all())
@@ -256,26 +258,25 @@ def test_a_promotion_only_revisit_never_demotes() -> None:
 
 
 def test_the_pixel_start_is_scheduled_at_the_warm_up_end_and_promotions_while_it_widens() -> None:
-    motion = MotionConfig(start_from_pixels=True, every=10)
-    config = tiny_config(max_iters=100, warmup_iters=20, time_ramp=0.5, motion=motion)
+    config = tiny_config(
+        max_iters=100, warmup_iters=20, time_ramp=0.5, motion=MotionConfig(every=10)
+    )
     full = schedules.window_full_step(config)
     assert full == 70
     # Steps done: after 20 the warm-up is over; the promotions follow, then full revisits.
     assert [s for s in range(100) if schedules.is_pixel_start(config, s)] == [20]
     assert [s for s in range(100) if schedules.is_promotion_step(config, s)] == [30, 40, 50, 60]
     assert [s for s in range(100) if schedules.is_motion_step(config, s)] == [70, 80, 90]
-    off = dataclasses.replace(config, motion=MotionConfig(every=10))
+    off = dataclasses.replace(config, motion=MotionConfig(every=10, start_from_pixels=False))
     assert not any(
         schedules.is_pixel_start(off, s) or schedules.is_promotion_step(off, s) for s in range(100)
     )
 
 
-def test_the_rig_starts_from_its_pixels_when_asked(tmp_path: Path) -> None:
-    """`--motion.start-from-pixels`: at the end of the warm-up only the Gaussians on the
-    ball and the cube stay dynamic, before any revisit; the run then trains on with the
-    field queried for those alone."""
-    motion = MotionConfig(start_from_pixels=True)
-    config = tiny_config(data=str(demo_path(RIG)), warmup_iters=2, motion=motion)
+def test_the_rig_starts_from_its_pixels(tmp_path: Path) -> None:
+    """At the end of the warm-up only the Gaussians on the ball and the cube stay dynamic,
+    before any revisit; the run then trains on with the field queried for those alone."""
+    config = tiny_config(data=str(demo_path(RIG)), warmup_iters=2)
     trainer = Trainer(config, tmp_path, NullWriter())
     trainer.train_step(0)
     assert bool(trainer.model.dynamic.all())
@@ -291,8 +292,7 @@ def test_the_rig_starts_from_its_pixels_when_asked(tmp_path: Path) -> None:
 
 
 def test_without_fixed_cameras_the_pixel_start_changes_nothing(tmp_path: Path) -> None:
-    motion = MotionConfig(start_from_pixels=True)
-    trainer = tiny_trainer(tmp_path, warmup_iters=2, motion=motion)
+    trainer = tiny_trainer(tmp_path, warmup_iters=2)
     assert trainer.lifecycle.fixed_motion is None
     for step in range(4):
         trainer.train_step(step)
