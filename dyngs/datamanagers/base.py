@@ -178,6 +178,10 @@ class SceneData:
     points_source: str = "random"
     """Where `points` came from: a file's name (a point cloud in the folder), or how they
     were made ("random in the box", "carved from 108 silhouettes", …)."""
+    points_on_surfaces: bool = False
+    """Whether the points are known to lie on what the images show: made from the images,
+    or a file's cloud that `choose_initial_points` judged real. Random points and a cloud
+    used unchecked (`--initial-points file`) are not."""
 
     @property
     def num_timestamps(self) -> int:

@@ -658,7 +658,8 @@ def choose_initial_points(
         shapes = silhouettes(scene.train, scene.background)
         problem = judge_cloud(scene.points, scene.train, shapes)
         if problem is None:
-            return scene, f"{len(scene.points):,} initial points from {scene.points_source}"
+            checked = dataclasses.replace(scene, points_on_surfaces=True)
+            return checked, f"{len(scene.points):,} initial points from {scene.points_source}"
     # A cloud that is not used must not size the box either.
     box = scene_box_from_cameras(scene.train.cameras) if given else scene.scene_box
     made = made_from_data(scene, box, count, pixel_change, seed)
@@ -678,6 +679,7 @@ def choose_initial_points(
         point_lifetimes=made.lifetimes,
         scene_box=box,
         points_source=f"made from the images ({made.source})",
+        points_on_surfaces=True,
     )
     return (
         chosen,

@@ -95,7 +95,7 @@ class Lifecycle:
         self.state = DensifyState.zeros(len(model.canonical), self.device)
         self.importance_seconds = 0.0
         self.filter_seconds = 0.0
-        self.motion_times = sample_times(data.scene.train.times, config.motion.samples)
+        self.motion = MotionSplit(config, model, data, writer, pixel_size, self._say)
         if config.gaussians.filter_3d > 0:  # as Mip-Splatting sizes its initial Gaussians'
             self.refresh_filter()
 
@@ -155,12 +155,7 @@ class Lifecycle:
     def after_step(self, step: int, optimizer: torch.optim.Optimizer, renderer: Renderer) -> None:
         """Everything due once `step` steps are done (see the module docstring)."""
         cfg = self.config
-        if schedules.is_motion_step(cfg, step):
-            self.revisit_motion(step)
-        elif schedules.is_pixel_start(cfg, step) and self.fixed_motion is not None:
-            self.start_from_pixels(step)
-        elif schedules.is_promotion_step(cfg, step) and self.fixed_motion is not None:
-            self.revisit_motion(step, demote=False)
+        self.motion.after_step(step, self.state)
         self.consider_sh_degree(step)
         if schedules.is_filter_step(cfg, step):
             self.refresh_filter()
@@ -231,76 +226,15 @@ class Lifecycle:
 
     # ------------------------------------------------------------ static / dynamic
 
-    @cached_property
-    def fixed_motion(self) -> FixedCameraMotion | None:
-        """What the fixed cameras see move (None without any); computed once."""
-        fixed = self.data.fixed_cameras
-        return None if fixed is None else FixedCameraMotion.of(self.data.scene.train, fixed=fixed)
-
     def read_every_image(self) -> None:
         """Read now what needs every training image (fixed cameras' motion): see `Trainer`."""
         if self.config.motion.separate:
-            _ = self.fixed_motion
-
-    def start_from_pixels(self, step: int) -> None:
-        """End of the warm-up (`--motion.start-from-pixels`): only the Gaussians that most
-        of the fixed cameras that see them see change stay dynamic. The field has not been
-        trained yet, so the others lose no deformation by turning static."""
-        assert self.fixed_motion is not None
-        model = self.model
-        means = model.canonical.means.detach()
-        model.dynamic = self.fixed_motion.evidence(means, self.config.motion)
-        share = model.dynamic_fraction()
-        self.writer.scalar("motion/dynamic_at_start", share, step)
-        self._say(
-            f"[motion] fixed cameras: {share:.1%} of the Gaussians sit where pixels change and "
-            "start dynamic; the rest start static, promoted when they move"
-        )
+            _ = self.motion.fixed_motion
 
     def revisit_motion(self, step: int, final: bool = False, demote: bool = True) -> None:
-        """Revisit the static/dynamic split (`dyngs.engine.motion.revisit`); `demote=False`
-        only promotes (while the window widens)."""
-        cfg, model, state = self.config, self.model, self.state
-        was_dynamic = model.any_dynamic()
-        # A static Gaussian's region "keeps an error" when its screen gradient is high enough
-        # to densify for and its canonical gradient consistently asks for a velocity.
-        mean_gradient = state.grad_sum / state.count.clamp_min(1)
-        coherence = max(cfg.motion.pull_coherence, schedules.chance_coherence(self.data.num_train))
-        wants_motion = (mean_gradient >= cfg.densify.grad_threshold) & (
-            state.pull_coherence() >= coherence
-        )
-        pixels_move = None
-        if final:  # nothing is left to learn: only measured motion decides
-            wants_motion[:] = False
-        elif self.fixed_motion is not None:
-            # Fixed cameras: a Gaussian where most of the cameras that see it see pixels
-            # change is dynamic. Asked of the Gaussians as they are at each revisit, not
-            # only at the end of the warm-up: from a noisy initial cloud nothing sits on the
-            # moving objects yet, and a split made then alone starved the field for good.
-            means = model.canonical.means.detach()
-            pixels_move = self.fixed_motion.evidence(means, cfg.motion)
-        times = self.motion_times
-        if not demote:  # the field has learned nothing past the window yet
-            train_times = self.data.scene.train.times
-            window = schedules.time_window(cfg, step)
-            seen = train_times[train_times <= max(window, float(train_times.min()))]
-            times = sample_times(seen, cfg.motion.samples)
-        became_static, became_dynamic = revisit(
-            model,
-            cfg.motion,
-            times,
-            self.pixel_size,
-            wants_motion,
-            pixels_move,
-            demote,
-        )
-        self.writer.scalar("motion/became_static", became_static, step)
-        self.writer.scalar("motion/became_dynamic", became_dynamic, step)
-        if was_dynamic and not model.any_dynamic():
-            self._say(
-                f"[motion] nothing in this scene moves more than {cfg.motion.static_pixels}"
-                " px: training on as a static scene, without the deformation field"
-            )
+        """Revisit the static/dynamic split with the statistics gathered since the last
+        refinement (`MotionSplit.revisit`)."""
+        self.motion.revisit(step, self.state, final, demote)
 
     # ------------------------------------------------------------ the end
 
@@ -332,6 +266,109 @@ class Lifecycle:
 
     def _say(self, line: str) -> None:
         self.console.print(line, highlight=False, markup=False)
+
+
+class MotionSplit:
+    """The static/dynamic split between steps (`dyngs.engine.motion`): with fixed cameras,
+    started from their pixels at the end of the warm-up and only promoted while the time
+    window widens; revisited every `--motion.every` steps once it is full, and a last time
+    at the end (measured motion alone)."""
+
+    def __init__(
+        self,
+        config: TrainConfig,
+        model: DynamicGaussians,
+        data: DataManager,
+        writer: Writer,
+        pixel_size: float,
+        say: Callable[[str], None],
+    ) -> None:
+        self.config = config
+        self.model = model
+        self.data = data
+        self.writer = writer
+        self.pixel_size = pixel_size
+        self.say = say
+        self.times = sample_times(data.scene.train.times, config.motion.samples)
+
+    @cached_property
+    def fixed_motion(self) -> FixedCameraMotion | None:
+        """What the fixed cameras see move (None without any); computed once."""
+        fixed = self.data.fixed_cameras
+        return None if fixed is None else FixedCameraMotion.of(self.data.scene.train, fixed=fixed)
+
+    def after_step(self, step: int, state: DensifyState) -> None:
+        """Whatever the split has due once `step` steps are done."""
+        cfg, model = self.config, self.model
+        if schedules.is_motion_step(cfg, step):
+            self.revisit(step, state)
+        elif schedules.is_pixel_start(cfg, step) and self.fixed_motion is not None:
+            self.start_from_pixels(step)
+        elif schedules.is_promotion_step(cfg, step) and not bool(model.dynamic.all()):
+            self.revisit(step, state, demote=False)
+
+    def start_from_pixels(self, step: int) -> None:
+        """End of the warm-up: only the Gaussians that most of the fixed cameras that see
+        them see change stay dynamic. The field has not been trained yet, so the others
+        lose no deformation by turning static. The pixel test reads what each Gaussian's
+        pixel shows, so it needs Gaussians on the surfaces: from random points or a cloud
+        nobody checked, every Gaussian stays dynamic (from mujoco-collision's noise cloud
+        the pixels started 0.1 % dynamic, and the run ended 4.6 dB lower)."""
+        assert self.fixed_motion is not None
+        model, scene = self.model, self.data.scene
+        if not scene.points_on_surfaces:
+            self.say(
+                f"[motion] fixed cameras, but the initial points ({scene.points_source}) "
+                "may not lie on surfaces: every Gaussian stays dynamic until the window is full"
+            )
+            return
+        means = model.canonical.means.detach()
+        model.dynamic = self.fixed_motion.evidence(means, self.config.motion)
+        share = model.dynamic_fraction()
+        self.writer.scalar("motion/dynamic_at_start", share, step)
+        self.say(
+            f"[motion] fixed cameras: {share:.1%} of the Gaussians sit where pixels change and "
+            "start dynamic; the rest start static, promoted when they move"
+        )
+
+    def revisit(
+        self, step: int, state: DensifyState, final: bool = False, demote: bool = True
+    ) -> None:
+        """Revisit the split (`dyngs.engine.motion.revisit`) with the statistics in `state`;
+        `demote=False` only promotes (while the window widens)."""
+        cfg, model = self.config, self.model
+        was_dynamic = model.any_dynamic()
+        # A static Gaussian's region "keeps an error" when its screen gradient is high enough
+        # to densify for and its canonical gradient consistently asks for a velocity.
+        mean_gradient = state.grad_sum / state.count.clamp_min(1)
+        coherence = max(cfg.motion.pull_coherence, schedules.chance_coherence(self.data.num_train))
+        wants_motion = (mean_gradient >= cfg.densify.grad_threshold) & (
+            state.pull_coherence() >= coherence
+        )
+        pixels_move = None
+        if final:  # nothing is left to learn: only measured motion decides
+            wants_motion[:] = False
+        elif self.fixed_motion is not None:
+            # Fixed cameras: a Gaussian where most of the cameras that see it see pixels
+            # change is dynamic. Asked of the Gaussians as they are at each revisit, not
+            # only at the end of the warm-up: Gaussians densify onto what moves later.
+            means = model.canonical.means.detach()
+            pixels_move = self.fixed_motion.evidence(means, cfg.motion)
+        times = self.times
+        if not demote:  # the field has learned nothing past the window yet
+            train_times = self.data.scene.train.times
+            window = schedules.time_window(cfg, step)
+            seen = train_times[train_times <= max(window, float(train_times.min()))]
+            times = sample_times(seen, cfg.motion.samples)
+        args = (cfg.motion, times, self.pixel_size, wants_motion, pixels_move, demote)
+        became_static, became_dynamic = revisit(model, *args)
+        self.writer.scalar("motion/became_static", became_static, step)
+        self.writer.scalar("motion/became_dynamic", became_dynamic, step)
+        if was_dynamic and not model.any_dynamic():
+            self.say(
+                f"[motion] nothing in this scene moves more than {cfg.motion.static_pixels}"
+                " px: training on as a static scene, without the deformation field"
+            )
 
 
 def crop_field(model: DynamicGaussians, optimizer: torch.optim.Optimizer) -> str | None:

@@ -98,7 +98,7 @@ def test_a_flat_cloud_is_a_surface_not_noise() -> None:
 
 def test_a_real_cloud_is_kept(monocular: Path, capsys: pytest.CaptureFixture[str]) -> None:
     scene = load_scene(monocular, DataConfig())
-    assert scene.points_source == "points3d.ply"
+    assert scene.points_source == "points3d.ply" and scene.points_on_surfaces
     assert "initial points from points3d.ply" in capsys.readouterr().err
     shapes = silhouettes(scene.train, scene.background)
     assert shapes is not None and shapes.kind == "alpha"
@@ -113,7 +113,7 @@ def test_a_noise_cloud_is_replaced_by_points_carved_on_the_objects(
     scene = load_scene(monocular, DataConfig(num_random_points=3000))
     said = capsys.readouterr().err
     assert "points3d.ply replaced, spread like uniform noise" in said
-    assert scene.points_source.startswith("made from the images (")
+    assert scene.points_source.startswith("made from the images (") and scene.points_on_surfaces
     assert "alpha silhouettes" in scene.points_source
     assert 1000 <= len(scene.points) <= 3000 and scene.point_colors is not None
     _assert_near_the_scene(scene.points, scene.scene_box)
@@ -132,8 +132,11 @@ def test_initial_points_modes(monocular: Path) -> None:
     _write_noise(monocular, count=500)
     kept = load_scene(monocular, DataConfig(initial_points="file"))
     assert kept.points_source == "points3d.ply" and len(kept.points) == 500
+    assert not kept.points_on_surfaces  # used as it is, unchecked
     made = load_scene(monocular, DataConfig(initial_points="data", num_random_points=800))
-    assert made.points_source.startswith("made from the images")
+    assert made.points_source.startswith("made from the images") and made.points_on_surfaces
+    drawn = load_scene(monocular, DataConfig(initial_points="random"))
+    assert not drawn.points_on_surfaces
     with pytest.raises(ConfigError, match="--initial-points"):
         DataConfig(initial_points="carve")
 
@@ -199,6 +202,7 @@ def test_a_capture_with_nothing_in_its_images_keeps_random_points(
     (monocular / "points3d.ply").unlink()
     scene = load_scene(monocular, DataConfig(num_random_points=300))
     assert scene.points_source == "random in the box" and len(scene.points) == 300
+    assert not scene.points_on_surfaces
     assert "none could be made from the images" in capsys.readouterr().err
 
 

@@ -291,9 +291,25 @@ def test_the_rig_starts_from_its_pixels(tmp_path: Path) -> None:
     assert calls == [int(model.dynamic.sum())]
 
 
+def test_the_rig_from_unchecked_points_keeps_every_gaussian_dynamic(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The pixel test reads what each Gaussian's pixel shows: from a cloud used unchecked
+    nothing says a Gaussian sits on the surface it is drawn over, so the start is not
+    made (as from random points)."""
+    data = DataConfig(initial_points="file")
+    config = tiny_config(data=str(demo_path(RIG)), warmup_iters=2, dataset=data)
+    trainer = Trainer(config, tmp_path, NullWriter())
+    for step in range(3):
+        trainer.train_step(step)
+    assert bool(trainer.model.dynamic.all())
+    said = " ".join(capsys.readouterr().out.split())
+    assert "(points3d.ply) may not lie on surfaces: every Gaussian stays dynamic" in said
+
+
 def test_without_fixed_cameras_the_pixel_start_changes_nothing(tmp_path: Path) -> None:
     trainer = tiny_trainer(tmp_path, warmup_iters=2)
-    assert trainer.lifecycle.fixed_motion is None
+    assert trainer.lifecycle.motion.fixed_motion is None
     for step in range(4):
         trainer.train_step(step)
     assert bool(trainer.model.dynamic.all())
