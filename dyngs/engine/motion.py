@@ -70,10 +70,11 @@ class MotionConfig:
     25/255 sits well above sensor and compression noise (a few /255 in DyNeRF's still
     regions) and below the contrast of a moving object against what is behind it."""
     start_from_pixels: bool = True
-    """Fixed cameras: at the end of the warm-up, start only the Gaussians that most of the
-    fixed cameras that see them see change dynamic (the rest static), and until the window
-    is full revisit every `every` steps to promote (never demote) what its pixels, its
-    field or its gradient say moves. False keeps every Gaussian dynamic until the first
+    """Fixed cameras, from initial points known to lie on surfaces (made from the images,
+    or a cloud judged real): at the end of the warm-up, start only the Gaussians that most
+    of the fixed cameras that see them see change dynamic (the rest static), and until the
+    window is full revisit every `every` steps to promote (never demote) what its pixels,
+    its field or its gradient say moves. False keeps every Gaussian dynamic until the first
     full revisit, once the window spans the sequence: on a real capture that was half a
     budgeted run's time, most of it spent deforming a still background, and the MuJoCo
     scenes trained 0.4 dB worse on the mean (docs/ACCURACY.md, "Fixed cameras start from
