@@ -1,8 +1,10 @@
 """What happens to the model between training steps, and at the end of a run.
 
 After each good step (`after_step`), in this order:
-1. **motion revisits** (`dyngs.engine.motion`): Gaussians that stopped moving become
-   static, static ones where something moves become dynamic;
+1. **the static/dynamic split** (`MotionSplit`, `dyngs.engine.motion`): with fixed
+   cameras it starts from their pixels at the end of the warm-up, and only promotes
+   while the time window widens; once it is full, Gaussians that stopped moving become
+   static and static ones where something moves become dynamic;
 2. **SH degree**: at each interval it may rise by one, when the frozen band's gradient
    asks for it (or on schedule, `--gaussians.sh-evidence 0`);
 3. **3D filter**: every `refine_every` steps, each Gaussian's smoothing filter is set
