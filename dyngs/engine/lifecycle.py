@@ -91,7 +91,6 @@ class Lifecycle:
         self.console = console
         self.generator = generator
         self.extent = extent
-        self.pixel_size = pixel_size
         self.on_topology = on_topology
         self.device = model.canonical.means.device
         self.state = DensifyState.zeros(len(model.canonical), self.device)
@@ -358,10 +357,9 @@ class MotionSplit:
             pixels_move = self.fixed_motion.evidence(means, cfg.motion)
         times = self.times
         if not demote:  # the field has learned nothing past the window yet
-            train_times = self.data.scene.train.times
             window = schedules.time_window(cfg, step)
-            seen = train_times[train_times <= max(window, float(train_times.min()))]
-            times = sample_times(seen, cfg.motion.samples)
+            seen = [t for _, t in self.data.train_poses(window)]
+            times = sample_times(torch.tensor(seen, dtype=torch.float64), cfg.motion.samples)
         args = (cfg.motion, times, self.pixel_size, wants_motion, pixels_move, demote)
         became_static, became_dynamic = revisit(model, *args)
         self.writer.scalar("motion/became_static", became_static, step)
