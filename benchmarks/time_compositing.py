@@ -45,7 +45,7 @@ CASES = [("10k-128", 10_000, 128), ("50k-256", 50_000, 256)]  # (name, Gaussians
 
 
 def time_case(
-    scene: Gaussians, camera: Camera, threads: int, repeats: int, tile_size: int = 16
+    scene: Gaussians, camera: Camera, threads: int, repeats: int, tile_size: int | None = None
 ) -> dict:
     """Render one scene forward and backward `repeats` + 1 times; medians of the timed ones."""
     spent = _time_compositing()
@@ -81,7 +81,9 @@ def main() -> None:
     parser.add_argument("--demo-run", type=Path, default=None,
                         help="also time this trained run's test frames")  # fmt: skip
     parser.add_argument("--demo-frames", type=int, default=5)
-    parser.add_argument("--tile-size", type=int, default=16, help="cpu-tile's --renderer.tile-size")
+    parser.add_argument(
+        "--tile-size", type=int, default=None, help="cpu-tile's tile size (default: per image)"
+    )
     parser.add_argument("--output", type=Path, default=ROOT / "benchmarks/results/compositing.json")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)

@@ -50,20 +50,42 @@ def cpu_tile_available() -> bool:
     return numba_available()
 
 
+LARGE_TILE, SMALL_TILE = 32, 16
+"""The tile sizes `choose_tile_size` picks from (pixels a side)."""
+
+
+def choose_tile_size(width: int, height: int) -> int:
+    """`LARGE_TILE` where the image holds at least four such tiles each way, else
+    `SMALL_TILE`.
+
+    A Gaussian is composited once per tile it reaches, and each such pair pays a set-up
+    (its rows and blocks solved from the conic) and the rounding of its footprint out to
+    whole rows and eight-column blocks at the tile's edges: larger tiles make fewer pairs.
+    But tiles are also what the threads share, and a small image has few of them: a 100²
+    frame at 32 px holds nine whole tiles and seven slivers four pixels wide. Measured on
+    trained models (docs/RENDERER.md, "Tiles of 32 pixels"), 32-px tiles composited
+    128² and larger frames faster and 100² frames slower on two threads. Chosen from the
+    image's size alone, so that a render and its gradients do not depend on the thread
+    count."""
+    return LARGE_TILE if min(width, height) >= 4 * LARGE_TILE else SMALL_TILE
+
+
 @dataclass(frozen=True)
 class CpuTileConfig(AntialiasedConfig):
     """The compiled tile rasterizer for CPUs (numba): the same image and gradients as
     cpu-reference, drawing only the pixels inside each Gaussian's α ≥ 1/255 ellipse."""
 
-    tile_size: int = 16
+    tile_size: int | None = None
     """Tile edge in pixels: the unit of parallel work and of early termination (a tile
-    stops when all its pixels have). The image does not depend on it."""
+    stops when all its pixels have). The image does not depend on it. None: chosen from
+    the image's size (`choose_tile_size`: 32 where both sides are at least 128 px, else
+    16)."""
     threads: int | None = None
     """Threads the kernels use; None: PyTorch's (`torch.get_num_threads()`)."""
 
     def __post_init__(self) -> None:
-        if self.tile_size < 1:
-            raise ConfigError(f"--renderer.tile-size must be ≥ 1, got {self.tile_size}")
+        if self.tile_size is not None and self.tile_size < 1:
+            raise ConfigError(f"--renderer.tile-size must be ≥ 1 (or None), got {self.tile_size}")
         if self.threads is not None and self.threads < 1:
             raise ConfigError(f"--renderer.threads must be ≥ 1 (or None), got {self.threads}")
 
@@ -106,7 +128,8 @@ class CpuTileRenderer:
         )
         if screen.means2d.requires_grad:
             screen.means2d.retain_grad()
-        size = (camera.width, camera.height, self.config.tile_size)
+        tile = self.config.tile_size or choose_tile_size(camera.width, camera.height)
+        size = (camera.width, camera.height, tile)
         bins = bin_tiles_compiled(screen, *size)
         features = torch.cat((screen.colors, screen.depths.to(screen.colors.dtype)[:, None]), 1)
         log_opacity = screen.opacities.clamp_min(1e-30).log()

@@ -81,6 +81,7 @@ def _assert_gradients_match(got: dict[str, Tensor], want: dict[str, Tensor], dty
         (2, 2000, 33, 129, 1),
         (3, 1200, 130, 70, 2),
         (4, 3000, 101, 101, 3),
+        (5, 3000, 160, 131, 1),  # tiles of 32 px (`choose_tile_size`)
     ],
 )
 def test_images_contributions_and_gradients_match_the_reference(
@@ -164,7 +165,7 @@ def test_a_render_without_gradients_keeps_no_backward_state_and_draws_the_same(
     # Without backward: no per-pixel state, no footprints, and one tile's α a thread.
     from dyngs.renderers import tile_kernels
 
-    tile = tile_kernels.tile_cells(CpuTileConfig().tile_size)
+    tile = tile_kernels.tile_cells(cpu_tile.choose_tile_size(camera.width, camera.height))
     assert kept[0][:2] == (camera.height, camera.width) and kept[0][2] > 0
     assert kept[1:] == [(0, 0, 0, tile), (0, 0, 0, tile)]
     for out in (without, still):
@@ -376,6 +377,27 @@ def test_without_numba_it_says_what_is_missing(monkeypatch: pytest.MonkeyPatch) 
     monkeypatch.setattr(cpu_tile, "cpu_tile_available", lambda: False)
     with pytest.raises(RendererUnavailable, match="needs numba"):
         CpuTileConfig().build()
+
+
+def test_the_tile_size_follows_the_image_size() -> None:
+    # 32-px tiles where the image holds four of them each way, 16 below; a fixed size wins.
+    choose = cpu_tile.choose_tile_size
+    assert [choose(128, 128), choose(480, 270), choose(800, 800)] == [32, 32, 32]
+    assert [choose(100, 100), choose(127, 500), choose(500, 127), choose(1, 1)] == [16] * 4
+    gaussians, camera, background = random_scene(7, 2000, 160, 131, torch.float32, 1)
+    sizes: list[int] = []
+    launch = cpu_tile._launch
+
+    def spy(kernel: Any, threads: int | None, *args: Any) -> None:
+        sizes.append(args[2][1])  # layout = (tiles across, tile size, width, height)
+        launch(kernel, threads, *args)
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(cpu_tile, "_launch", spy)
+        auto = CpuTileConfig().build()(gaussians, camera, background)
+        fixed = CpuTileConfig(tile_size=16).build()(gaussians, camera, background)
+    assert sizes == [32, 16]
+    assert torch.equal(auto.rgb, fixed.rgb) and torch.equal(auto.alpha, fixed.alpha)
 
 
 def test_bad_options_are_refused() -> None:
