@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from dyngs.ops import finite_rows, zero_nonfinite
+from dyngs.ops import finite_rows, finite_rows_by_row, zero_nonfinite
 
 SPECIALS = [math.inf, -math.inf, math.nan]
 
@@ -51,6 +51,33 @@ def test_finite_rows_of_huge_finite_rows_and_of_empty_inputs() -> None:
     assert finite_rows(big).tolist() == [True, True]
     assert finite_rows(torch.zeros(0, 3), torch.zeros(0)).shape == (0,)
     assert finite_rows(torch.zeros(3, 0)).tolist() == [True, True, True]
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("special", SPECIALS)
+def test_one_nonfinite_entry_anywhere_is_found(dtype: torch.dtype, special: float) -> None:
+    """The whole-tensor test that lets clean tensors skip the row-wise one must see a
+    single NaN or ±Inf wherever it sits: at either end, at the edges of vector lanes, in
+    any tensor of several; with the largest finite values beside it."""
+    n = 257
+    generator = torch.Generator().manual_seed(7)
+    shapes = [(n, 3), (n,), (n, 15, 3)]
+    for which, shape in enumerate(shapes):
+        size = math.prod(shape)
+        for position in sorted({0, 1, 7, 8, 15, 16, 31, 32, size // 2, size - 1}):
+            tensors = [torch.randn(s, dtype=dtype, generator=generator) for s in shapes]
+            tensors[0][0, 0] = torch.finfo(dtype).max
+            tensors[which].view(-1)[position] = special
+            row = position // (size // n)
+            found = finite_rows(*tensors)
+            assert torch.equal(found, finite_rows_by_row(*tensors))
+            assert not found[row] and int(found.sum()) == n - 1
+
+
+def test_clean_tensors_are_finite_in_every_row() -> None:
+    tensors = [torch.randn(33, 4, dtype=torch.float64), torch.randn(33), torch.zeros(33, 0)]
+    assert finite_rows(*tensors).tolist() == [True] * 33
+    assert torch.equal(finite_rows(*tensors), finite_rows_by_row(*tensors))
 
 
 def test_finite_rows_has_no_gradient() -> None:

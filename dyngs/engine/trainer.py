@@ -106,6 +106,8 @@ def quarantine_nonfinite_gaussians(canonical: CanonicalGaussians) -> None:
     them, but activations still pass NaN back (exp(inf) · 0); left alone, one such
     Gaussian would make every step non-finite. Refinement prunes them."""
     bad = ~canonical.finite_rows()
+    if bad.device.type == "cpu" and not bool(bad.any()):
+        return  # the usual case: no pass over every gradient (on a GPU, no host sync)
     for p in canonical.params().values():
         if p.grad is not None:
             p.grad.masked_fill_(bad.reshape(-1, *[1] * (p.dim() - 1)), 0.0)
