@@ -17,7 +17,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from jaxtyping import Float
 from torch import Tensor, nn
 
@@ -25,6 +24,7 @@ from dyngs.compiled import numba_available, run_kernel, thread_count
 from dyngs.errors import ConfigError
 from dyngs.fields._common import space_time
 from dyngs.fields.base import PlaneGrids
+from dyngs.fields.plane_sampler import sample_group
 from dyngs.types import DataScale, SceneBox
 
 PLANE_AXES: tuple[tuple[int, int], ...] = ((0, 1), (0, 2), (1, 2), (0, 3), (1, 3), (2, 3))
@@ -235,28 +235,18 @@ class HexPlaneField(nn.Module):
 
     def forward(self, xyz: Float[Tensor, "N 3"], t: Float[Tensor, "N 1"]) -> Float[Tensor, "N F"]:
         full = self.normalize(xyz, t)
-        n = full.shape[0]
         samples: list[list[Tensor]] = []  # per scale, its groups' [G, F, 1, N] samples
         for s, groups in enumerate(self._groups):
             coords = full if not self._cropped[s] else self._local(full, s)
             samples.append([])
             for index, name, is_time in groups:
-                param = self.grids[index]
-                g = param.shape[0]
-                columns = self.get_buffer(name)
-                # [N, 2G] -> [G, 1, N, 2]: plane i of the group reads columns (a_i, b_i).
-                grid = coords.index_select(1, columns).view(n, g, 2).transpose(0, 1).unsqueeze(1)
-                if is_time:
-                    # 1 + interp(plane − 1), equal to interp(plane) in exact arithmetic. The
-                    # four bilinear weights do not sum to exactly 1 in floating point, so a
-                    # plane of ones sampled directly gives 1 ± 1 ulp, varying with t; this
-                    # form gives exactly 1, so the static start is exact, and small departures
-                    # from 1 keep their full relative precision.
-                    sampled = F.grid_sample(
-                        param - 1.0, grid, "bilinear", "border", align_corners=True
-                    ).add_(1.0)
-                else:
-                    sampled = F.grid_sample(param, grid, "bilinear", "border", align_corners=True)
+                # Time planes are sampled as 1 + interp(plane − 1), equal to interp(plane)
+                # in exact arithmetic. The four bilinear weights do not sum to exactly 1 in
+                # floating point, so a plane of ones sampled directly gives 1 ± 1 ulp,
+                # varying with t; this form gives exactly 1, so the static start is exact,
+                # and small departures from 1 keep their full relative precision.
+                shift = 1.0 if is_time else 0.0
+                sampled = sample_group(self.grids[index], coords, self.get_buffer(name), shift)
                 samples[-1].append(sampled)
         if full.device.type == "cpu" and numba_available():
             return compiled_products(samples)
