@@ -4,12 +4,13 @@
 
     python benchmarks/time_sampler.py --threads 2 --output benchmarks/results/sampler.json
 
-For each point count, the field alone (the demo's data-sized grid, 35³ × 13, two scales,
-32 channels, planes departed from their start), forward and backward at N random points
-and times, the two ways interleaved round by round in one process. The demo trains with
-about 6 800 Gaussians, all dynamic, until its first motion split, and about 1 850 dynamic
-ones after it. Medians over --repeats rounds after a warm-up; the figures go to --output
-as JSON.
+For each point count, the field alone, forward and backward at N random points and times,
+the two ways interleaved round by round in one process. The grid is the demo's
+data-sized one by default (35³ × 13, two scales, 32 channels; `--resolution 128 128 128
+134` gives hfu-3cam's), its planes departed from their start. The demo trains with about
+6 800 Gaussians, all dynamic, until its first motion split, and about 1 850 dynamic ones
+after it. Medians over --repeats rounds after a warm-up; the figures go to --output as
+JSON.
 """
 
 from __future__ import annotations
@@ -31,10 +32,12 @@ from dyngs.tools.common import write_report  # noqa: E402
 WAYS = {"grid_sample": plane_sampler.reference_sample, "compiled": plane_sampler.sample_group}
 
 
-def time_points(points: int, features: int, repeats: int) -> dict[str, float]:
+def time_points(
+    points: int, features: int, resolution: tuple[int, ...], repeats: int
+) -> dict[str, float]:
     """Median ms of the field's forward and backward at `points` points, each way."""
     generator = torch.Generator().manual_seed(0)
-    field, _ = perturbed_field((35, 35, 35, 13), features, generator)
+    field, _ = perturbed_field(resolution, features, generator)
     xyz = (2 * torch.rand(points, 3, generator=generator) - 1).requires_grad_(True)
     t = torch.rand(points, 1, generator=generator)
     upstream = torch.randn(points, field.out_dim, generator=generator)
@@ -58,14 +61,18 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--points", type=int, nargs="+", default=[1850, 6800])
     parser.add_argument("--features", type=int, default=32)
+    parser.add_argument(
+        "--resolution", type=int, nargs=4, default=[35, 35, 35, 13], help="x y z t, coarsest scale"
+    )
     parser.add_argument("--repeats", type=int, default=60)
     parser.add_argument("--output", type=Path, default=ROOT / "benchmarks/results/sampler.json")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     rows = []
     for points in args.points:
-        medians = time_points(points, args.features, args.repeats)
-        rows.append({"features": args.features, "points": points, **medians})
+        medians = time_points(points, args.features, tuple(args.resolution), args.repeats)
+        rows.append({"features": args.features, "resolution": args.resolution, "points": points,
+                     **medians})  # fmt: skip
         print(
             f"{points} points, {args.features} channels: field forward + backward "
             f"{medians['grid_sample']:.2f} ms with grid_sample, {medians['compiled']:.2f} ms "
