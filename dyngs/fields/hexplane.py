@@ -140,8 +140,9 @@ class HexPlaneField(nn.Module):
 
     Each scale holds the three spatial planes xy, xz, yz and the three time planes xt, yt,
     zt. A point is normalised by the scene box to [-1, 1]³ and its time t ∈ [0, 1] to
-    2t − 1; each plane is sampled bilinearly at the point's two coordinates
-    (`F.grid_sample`, align_corners=True, so -1 and 1 are the centres of the edge texels).
+    2t − 1; each plane is sampled bilinearly at the point's two coordinates, as
+    `F.grid_sample` with align_corners=True (so -1 and 1 are the centres of the edge
+    texels) does; on the CPU by the compiled `plane_sampler.sample_group`.
 
     Combination, as in K-Planes (Fridovich-Keil et al. 2023): within a scale the six sampled
     F-vectors are multiplied elementwise (Hadamard product); the S scales' products are
@@ -162,8 +163,8 @@ class HexPlaneField(nn.Module):
     axis — like K-Planes' border padding, stated explicitly.
 
     Storage: the spatial (or time) planes of one scale that share a shape are one
-    [G, F, R_b, R_a] Parameter, sampled with one batched `grid_sample` call (at the
-    defaults, two calls per scale: three 64×64 spatial planes, three 25×64 time planes).
+    [G, F, R_b, R_a] Parameter, sampled with one batched call (at the defaults, two calls
+    per scale: three 64×64 spatial planes, three 25×64 time planes).
     `planes()` returns views of those Parameters, so regularizer gradients reach them.
     Time planes are sampled as 1 + interp(plane − 1), which makes a plane of exactly 1
     give exactly 1 (see `forward`).
@@ -218,7 +219,7 @@ class HexPlaneField(nn.Module):
 
     def _assemble(self, planes: Sequence[Sequence[Tensor]]) -> None:
         """Store six [F, R_b, R_a] planes per scale as Parameters, those of one kind and shape
-        stacked into one group that a single `grid_sample` call reads."""
+        stacked into one group that a single sampling call reads."""
         grouped, self._groups, self._where, columns = _group(planes)
         device = grouped[0].device
         for name in [n for n in self._buffers if n.startswith("columns")]:
