@@ -5,12 +5,12 @@ elsewhere.
 `F.grid_sample(planes − shift, grid, "bilinear", "border", align_corners=True) + shift`,
 with plane g of the group read at columns (a_g, b_g) of `coords`. On the CPU with numba,
 and for channel counts that are a multiple of `sampler_kernels.BLOCK`, it runs
-`sampler_kernels`, which reads and adds a node's channels as one run. Its forward and
-backward took about half of `grid_sample`'s time on the demo's plane shapes
-(docs/TRAINING.md). The reference stays the definition, and it is used everywhere else;
-tests/fields/test_plane_sampler.py holds the two together. The results agree to rounding,
-not to the bit: the two place a point on the grid and sum its channels' gradients in
-different orders.
+`sampler_kernels`, which reads and adds a node's channels as one run. The field's
+forward and backward then take 0.5-0.65 of their time with `grid_sample` on the demo's
+grid (docs/TRAINING.md). The reference stays the definition, and it is used everywhere
+else; tests/fields/test_plane_sampler.py holds the two together. The results agree to
+rounding, not to the bit: the two sum a sample's four corners, and a point's coordinate
+gradient over the channels, in different orders.
 """
 
 from __future__ import annotations
@@ -69,7 +69,7 @@ def sample_group(
 
 
 def _placed(planes: Tensor, coords: Tensor, columns: Tensor) -> tuple[Tensor, Tensor]:
-    """Each plane's corner nodes and fractions for every point (`_placements`)."""
+    """Each plane's corner nodes and fractions for every point (`sampler_kernels.placements`)."""
     from dyngs.fields import sampler_kernels
 
     groups, _, height, width = planes.shape
@@ -77,7 +77,7 @@ def _placed(planes: Tensor, coords: Tensor, columns: Tensor) -> tuple[Tensor, Te
     nodes = torch.empty(groups, coords.shape[0], 4, dtype=torch.int64)
     fractions = torch.empty(groups, coords.shape[0], 4, dtype=planes.dtype)
     lasts = np.array([width - 1, height - 1], dtype=kind)
-    run_kernel(sampler_kernels._placements, thread_count(None), str(planes.dtype),
+    run_kernel(sampler_kernels.placements, thread_count(None), str(planes.dtype),
                coords.numpy(), columns.numpy(), kind(1.0), kind(0.5), lasts, nodes.numpy(),
                fractions.numpy())  # fmt: skip
     return nodes, fractions

@@ -7,11 +7,14 @@ align_corners=True) + shift` computes (the reference, `plane_sampler.reference_s
 for the field's grids: plane g is read at the coordinate columns (a_g, b_g) of every
 point, a along W and b along H. PyTorch's CPU kernel vectorises over points and, in its
 backward, adds each point's gradient into the plane one channel at a time, H·W values
-apart. Here a job is one plane and a block of B channels. It first copies its block
-channels-last, [H, W, B], so that the B channels of a node are adjacent; then for each
-point it reads (forward) or adds into (backward) the four corner nodes as runs of B
-values, which LLVM vectorises. Its jobs write disjoint parts of every output, and each
-walks its points in order, so the results are the same at every thread count.
+apart. Here `placements` first finds, once per plane and point, the four corner nodes
+and the two fractions (with every job placing each point again, the field ran only
+1.1-1.2× faster than with grid_sample; placed once, 1.5×). Then a job is one plane and a
+block of B channels. It copies its block channels-last, [H, W, B], so that the B
+channels of a node are adjacent; then for each point it reads (forward) or adds into
+(backward) the four corner nodes as runs of B values, which LLVM vectorises. Its jobs
+write disjoint parts of every output, and each walks its points in order, so the results
+are the same at every thread count.
 
 Placement, as grid_sample's: x ↦ (x + 1)/2 · (W − 1), clipped to [0, W − 1]. The
 coordinate's gradient is zero where the clip holds it at an edge (or beyond), as
@@ -48,7 +51,7 @@ def _place(x, one, half, last):  # type: ignore[no-untyped-def]  # pragma: no co
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def _placements(coords, columns, one, half, lasts, nodes, fractions):  # type: ignore[no-untyped-def]  # pragma: no cover
+def placements(coords, columns, one, half, lasts, nodes, fractions):  # type: ignore[no-untyped-def]  # pragma: no cover
     """For each plane g and point n: nodes[g, n] = (x0, x1, y0, y1) and fractions[g, n] =
     (fx, fy, x free, y free), from columns (a_g, b_g) of coords; lasts = (W − 1, H − 1)."""
     groups, n = nodes.shape[0], coords.shape[0]
@@ -77,7 +80,7 @@ def _block(planes, g, c0, shift):  # type: ignore[no-untyped-def]  # pragma: no 
 
 @njit(parallel=True, cache=True, nogil=True)
 def sample_forward(planes, nodes, fractions, shift, one, out):  # type: ignore[no-untyped-def]  # pragma: no cover
-    """out[g, c, n] = plane g's channel c, bilinearly at point n's place (`_placements`);
+    """out[g, c, n] = plane g's channel c, bilinearly at point n's place (`placements`);
     planes [G, C, H, W], out [G, C, N]. `one` carries the planes' dtype, so that float32
     arithmetic stays float32."""
     groups, channels = planes.shape[:2]
