@@ -4,7 +4,7 @@ elsewhere.
 `sample_group(planes, coords, columns, shift)` is `reference_sample`'s
 `F.grid_sample(planes − shift, grid, "bilinear", "border", align_corners=True) + shift`,
 with plane g of the group read at columns (a_g, b_g) of `coords`. On the CPU with numba,
-and for channel counts that are a multiple of `sampler_kernels.BLOCK`, it runs
+and for channel counts that are a multiple of `BLOCK`, it runs
 `sampler_kernels`, which reads and adds a node's channels as one run. The field's
 forward and backward then take 0.5-0.65 of their time with `grid_sample` on the demo's
 grid (docs/TRAINING.md). The reference stays the definition, and it is used everywhere
@@ -25,7 +25,9 @@ from torch import Tensor
 
 from dyngs.compiled import numba_available, run_kernel, thread_count
 
-_BLOCK = 8  # sampler_kernels.BLOCK, without importing numba to read it
+BLOCK = 8
+"""Channels a compiled job takes (`sampler_kernels`): eight float32 values, one 256-bit
+vector. Defined here so that deciding the path needs no numba import."""
 
 
 def reference_sample(
@@ -50,7 +52,7 @@ def compiled_usable(planes: Tensor, coords: Tensor) -> bool:
         and coords.device.type == "cpu"
         and planes.dtype in (torch.float32, torch.float64)
         and coords.dtype == planes.dtype
-        and planes.shape[1] % _BLOCK == 0
+        and planes.shape[1] % BLOCK == 0
         and planes.is_contiguous()
         and numba_available()
     )
@@ -117,7 +119,7 @@ class _SampleGroup(torch.autograd.Function):
         n = nodes.shape[1]
         upstream = grad.contiguous().view(groups, channels, n)
         grads = torch.empty_like(planes)
-        partial = torch.empty(groups, channels // _BLOCK, n, 2, dtype=planes.dtype)
+        partial = torch.empty(groups, channels // BLOCK, n, 2, dtype=planes.dtype)
         kind = _kind(planes.dtype)
         scales = np.array([(width - 1) / 2, (height - 1) / 2], dtype=kind)
         run_kernel(sampler_kernels.sample_backward, thread_count(None), str(planes.dtype),

@@ -28,8 +28,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-BLOCK = 8
-"""Channels a job takes: eight float32 values, one 256-bit vector."""
+from dyngs.fields.plane_sampler import BLOCK
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -78,6 +77,15 @@ def _block(planes, g, c0, shift):  # type: ignore[no-untyped-def]  # pragma: no 
     return block
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _weights(fractions, g, n, one):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+    """Point n's fractions on plane g, their complements and its four corners' bilinear
+    weights: (fx, fy, 1 − fx, 1 − fy, nw, ne, sw, se)."""
+    fx, fy = fractions[g, n, 0], fractions[g, n, 1]
+    gx, gy = one - fx, one - fy
+    return fx, fy, gx, gy, gx * gy, fx * gy, gx * fy, fx * fy
+
+
 @njit(parallel=True, cache=True, nogil=True)
 def sample_forward(planes, nodes, fractions, shift, one, out):  # type: ignore[no-untyped-def]  # pragma: no cover
     """out[g, c, n] = plane g's channel c, bilinearly at point n's place (`placements`);
@@ -90,9 +98,7 @@ def sample_forward(planes, nodes, fractions, shift, one, out):  # type: ignore[n
         block = _block(planes, g, c0, shift)
         for n in range(nodes.shape[1]):
             x0, x1, y0, y1 = nodes[g, n, 0], nodes[g, n, 1], nodes[g, n, 2], nodes[g, n, 3]
-            fx, fy = fractions[g, n, 0], fractions[g, n, 1]
-            gx, gy = one - fx, one - fy
-            nw, ne, sw, se = gx * gy, fx * gy, gx * fy, fx * fy
+            _, _, _, _, nw, ne, sw, se = _weights(fractions, g, n, one)
             for c in range(BLOCK):
                 value = block[y0, x0, c] * nw + block[y0, x1, c] * ne
                 value += block[y1, x0, c] * sw + block[y1, x1, c] * se
@@ -115,9 +121,7 @@ def sample_backward(planes, nodes, fractions, shift, one, scales, upstream, grad
         up = np.empty(BLOCK, planes.dtype)
         for n in range(nodes.shape[1]):
             x0, x1, y0, y1 = nodes[g, n, 0], nodes[g, n, 1], nodes[g, n, 2], nodes[g, n, 3]
-            fx, fy = fractions[g, n, 0], fractions[g, n, 1]
-            gx, gy = one - fx, one - fy
-            nw, ne, sw, se = gx * gy, fx * gy, gx * fy, fx * fy
+            fx, fy, gx, gy, nw, ne, sw, se = _weights(fractions, g, n, one)
             for c in range(BLOCK):
                 up[c] = upstream[g, c0 + c, n]
             # One loop a corner: at the last node the corners coincide (x1 = x0), so a
