@@ -24,7 +24,7 @@ from dyngs.compiled import numba_available, run_kernel, thread_count
 from dyngs.errors import ConfigError
 from dyngs.fields._common import space_time
 from dyngs.fields.base import PlaneGrids
-from dyngs.fields.plane_sampler import sample_group
+from dyngs.fields.plane_sampler import channels_first, channels_last, sample_group
 from dyngs.types import DataScale, SceneBox
 
 PLANE_AXES: tuple[tuple[int, int], ...] = ((0, 1), (0, 2), (1, 2), (0, 3), (1, 3), (2, 3))
@@ -404,41 +404,43 @@ def compiled_products(samples: Sequence[Sequence[Tensor]]) -> Float[Tensor, "N S
 
 class _PlaneProduct(torch.autograd.Function):
     """The [G, F, 1, N] samples of every scale's plane groups → their per-scale products
-    side by side, [N, S·F]."""
+    side by side, [N, S·F]. The kernels work channels last: samples from the compiled
+    sampler are so already (`plane_sampler.channels_first` views), others are copied, and
+    the gradients go back as such views."""
 
     @staticmethod
     def forward(ctx, scales: int, *flat: Tensor) -> Tensor:  # type: ignore[override]
         from dyngs.fields import product_kernels
 
+        samples = [channels_last(sampled.detach()) for sampled in flat]
         channels, n = flat[0].shape[1], flat[0].shape[-1]
-        out = torch.empty(scales * channels, n, dtype=flat[0].dtype)
+        out = torch.empty(n, scales * channels, dtype=flat[0].dtype)
         run_kernel(product_kernels.product_forward, thread_count(None), str(out.dtype),
-                   _planes(flat, scales), out.numpy())  # fmt: skip
+                   _planes(samples, scales), out.numpy())  # fmt: skip
         ctx.scales = scales
-        ctx.save_for_backward(*flat)
-        return out.t().contiguous()
+        ctx.save_for_backward(*samples)
+        return out
 
     @staticmethod
     def backward(ctx, grad: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
         from dyngs.fields import product_kernels
 
-        flat = ctx.saved_tensors
-        grads = tuple(torch.empty_like(sampled) for sampled in flat)
-        upstream = grad.t().contiguous()
+        samples = ctx.saved_tensors
+        grads = tuple(torch.empty_like(sampled) for sampled in samples)
+        upstream = grad.contiguous()
         run_kernel(product_kernels.product_backward, thread_count(None), str(upstream.dtype),
-                   _planes(flat, ctx.scales), upstream.numpy(),
+                   _planes(samples, ctx.scales), upstream.numpy(),
                    _planes(grads, ctx.scales))  # fmt: skip
-        return (None, *grads)
+        return (None, *(channels_first(g) for g in grads))
 
 
-def _planes(flat: Sequence[Tensor], scales: int) -> tuple[np.ndarray, ...]:
-    """The [G, F, 1, N] samples of `scales` scales as every scale's six planes in turn,
-    [F, N] arrays (views), in the order they multiply."""
+def _planes(samples: Sequence[Tensor], scales: int) -> tuple[np.ndarray, ...]:
+    """The [G, N, F] samples of `scales` scales as every scale's six planes in turn,
+    [N, F] arrays (views), in the order they multiply."""
     planes: list[np.ndarray] = []
-    for sampled in flat:
+    for sampled in samples:
         assert sampled.is_contiguous()  # a reshaped copy would lose the kernels' writes
-        g, channels, _, n = sampled.shape
-        planes.extend(sampled.detach().numpy().reshape(g, channels, n))
+        planes.extend(sampled.numpy())
     assert len(planes) == len(PLANE_AXES) * scales  # every scale has six planes
     return tuple(planes)
 

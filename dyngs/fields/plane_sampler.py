@@ -4,11 +4,12 @@ elsewhere.
 `sample_group(planes, coords, columns, shift)` is `reference_sample`'s
 `F.grid_sample(planes − shift, grid, "bilinear", "border", align_corners=True) + shift`,
 with plane g of the group read at columns (a_g, b_g) of `coords`. On the CPU with numba,
-and for channel counts that are a multiple of `BLOCK`, it runs
-`sampler_kernels`, which reads and adds a node's channels as one run. The field's
-forward and backward then take 0.5-0.65 of their time with `grid_sample` on the demo's
-grid (docs/TRAINING.md). The reference stays the definition, and it is used everywhere
-else; tests/fields/test_plane_sampler.py holds the two together. The results agree to
+and for channel counts that are a multiple of `BLOCK`, it runs `sampler_kernels`, which
+reads and adds a node's channels as one run. Its samples are laid out channels last, a
+[G, C, 1, N] view of [G, N, C] (`channels_first`), which the compiled plane products
+read, and whose gradient they write, without a transposing copy; docs/TRAINING.md has
+the timings. The reference stays the definition, and it is used everywhere else;
+tests/fields/test_plane_sampler.py holds the two together. The results agree to
 rounding, not to the bit: the two sum a sample's four corners, and a point's coordinate
 gradient over the channels, in different orders.
 """
@@ -100,36 +101,52 @@ class _SampleGroup(torch.autograd.Function):
         coords = coords.detach().contiguous()
         columns = columns.detach().contiguous()
         nodes, fractions = _placed(planes, coords, columns)
-        groups, channels = planes.shape[:2]
-        out = torch.empty(groups, channels, coords.shape[0], dtype=planes.dtype)
-        kind = _kind(planes.dtype)
-        run_kernel(sampler_kernels.sample_forward, thread_count(None), str(planes.dtype),
-                   planes.detach().numpy(), nodes.numpy(), fractions.numpy(), kind(shift),
-                   kind(1.0), out.numpy())  # fmt: skip
-        ctx.save_for_backward(planes, columns, nodes, fractions)
-        ctx.shift, ctx.coords_width = shift, coords.shape[1]
-        return out.unsqueeze(2)
+        groups, channels, height, width = planes.shape
+        kind, threads, signature = _kind(planes.dtype), thread_count(None), str(planes.dtype)
+        # The planes less the shift, channels last: read by the forward and the backward.
+        values = torch.empty(groups, height, width, channels, dtype=planes.dtype)
+        run_kernel(sampler_kernels.planes_channels_last, threads, signature,
+                   planes.detach().numpy(), kind(shift), values.numpy())  # fmt: skip
+        out = torch.empty(groups, coords.shape[0], channels, dtype=planes.dtype)
+        run_kernel(sampler_kernels.sample_forward, threads, signature, values.numpy(),
+                   nodes.numpy(), fractions.numpy(), kind(shift), kind(1.0),
+                   out.numpy())  # fmt: skip
+        ctx.save_for_backward(values, columns, nodes, fractions)
+        ctx.coords_width = coords.shape[1]
+        return channels_first(out)
 
     @staticmethod
     def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
         from dyngs.fields import sampler_kernels
 
-        planes, columns, nodes, fractions = ctx.saved_tensors
-        groups, channels, height, width = planes.shape
+        values, columns, nodes, fractions = ctx.saved_tensors
+        groups, height, width, channels = values.shape
         n = nodes.shape[1]
-        upstream = grad.contiguous().view(groups, channels, n)
-        grads = torch.empty_like(planes)
-        partial = torch.empty(groups, channels // BLOCK, n, 2, dtype=planes.dtype)
-        kind = _kind(planes.dtype)
+        upstream = channels_last(grad)
+        grads = torch.empty(groups, channels, height, width, dtype=values.dtype)
+        # No coordinates' gradient wanted: no points for the coordinates' jobs.
+        per_plane = torch.empty(groups, n if ctx.needs_input_grad[1] else 0, 2, dtype=values.dtype)
+        kind = _kind(values.dtype)
         scales = np.array([(width - 1) / 2, (height - 1) / 2], dtype=kind)
-        run_kernel(sampler_kernels.sample_backward, thread_count(None), str(planes.dtype),
-                   planes.detach().numpy(), nodes.numpy(), fractions.numpy(), kind(ctx.shift),
-                   kind(1.0), scales, upstream.numpy(), grads.numpy(), partial.numpy())  # fmt: skip
+        run_kernel(sampler_kernels.sample_backward, thread_count(None), str(values.dtype),
+                   values.numpy(), nodes.numpy(), fractions.numpy(), kind(1.0), scales,
+                   upstream.numpy(), grads.numpy(), per_plane.numpy())  # fmt: skip
         coords_grad = None
         if ctx.needs_input_grad[1]:
-            # The blocks' shares in order, then each plane's two columns in the order the
-            # reference's index_select backward adds them.
-            per_column = partial.sum(dim=1).transpose(0, 1).reshape(n, 2 * groups)
-            coords_grad = torch.zeros(n, ctx.coords_width, dtype=planes.dtype)
+            # Each plane's two columns, in the order the reference's index_select backward
+            # adds them.
+            per_column = per_plane.transpose(0, 1).reshape(n, 2 * groups)
+            coords_grad = torch.zeros(n, ctx.coords_width, dtype=values.dtype)
             coords_grad.index_add_(1, columns, per_column)
         return (grads if ctx.needs_input_grad[0] else None), coords_grad, None, None
+
+
+def channels_first(samples: Float[Tensor, "G N C"]) -> Float[Tensor, "G C 1 N"]:
+    """[G, N, C] samples as the sampler's [G, C, 1, N], a view: the compiled sampler and
+    products keep a point's channels adjacent, and pass them on so without a copy."""
+    return samples.permute(0, 2, 1).unsqueeze(2)
+
+
+def channels_last(samples: Float[Tensor, "G C 1 N"]) -> Float[Tensor, "G N C"]:
+    """`channels_first` undone: a view where `samples` came from it, else a copy."""
+    return samples.squeeze(2).transpose(1, 2).contiguous()

@@ -7,14 +7,22 @@ align_corners=True) + shift` computes (the reference, `plane_sampler.reference_s
 for the field's grids: plane g is read at the coordinate columns (a_g, b_g) of every
 point, a along W and b along H. PyTorch's CPU kernel vectorises over points and, in its
 backward, adds each point's gradient into the plane one channel at a time, H·W values
-apart. Here `placements` first finds, once per plane and point, the four corner nodes
-and the two fractions (with every job placing each point again, the field ran only
-1.1-1.2× faster than with grid_sample; placed once, 1.5×). Then a job is one plane and a
-block of B channels. It copies its block channels-last, [H, W, B], so that the B
-channels of a node are adjacent; then for each point it reads (forward) or adds into
-(backward) the four corner nodes as runs of B values, which LLVM vectorises. Its jobs
-write disjoint parts of every output, and each walks its points in order, so the results
-are the same at every thread count.
+apart. Here:
+- `placements` finds, once per plane and point, the four corner nodes and the two
+  fractions (with every job placing each point again, the field ran only 1.1-1.2× faster
+  than with grid_sample; placed once, 1.5×);
+- `planes_channels_last` copies the planes, less the shift, once a forward, as [G, H, W, C], so
+  that a node's C channels are adjacent; the backward reads the same copy;
+- `sample_forward` is one job per (plane, run of CHUNK points): each point reads its
+  four corners as runs of C values, which LLVM vectorises;
+- `sample_backward` has two kinds of job. One per (plane, block of B channels) adds each
+  point's upstream gradient into that block's four corners, in a private [H, W, B]
+  buffer, point by point in order. One per (plane, run of CHUNK points) forms each
+  point's gradient on its two coordinates, a sum over the C channels kept in B lanes and
+  added in a fixed tree at the end, so that LLVM can vectorise it without reordering
+  floating-point sums.
+Every job writes its own part of every output, in an order that does not depend on how
+jobs fall to threads, so the results are the same at every thread count.
 
 Placement, as grid_sample's: x ↦ (x + 1)/2 · (W − 1), clipped to [0, W − 1]. The
 coordinate's gradient is zero where the clip holds it at an edge (or beyond), as
@@ -28,7 +36,16 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from dyngs.compiled import noalias_option
 from dyngs.fields.plane_sampler import BLOCK
+
+CHUNK = 256
+"""Points a forward or coordinate-gradient job takes. Each point's results are its own, so
+the split changes only how the work is shared, never a digit."""
+
+_NOALIAS = noalias_option()
+
+assert BLOCK == 8, "_tree adds eight lanes"
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -64,86 +81,129 @@ def placements(coords, columns, one, half, lasts, nodes, fractions):  # type: ig
             fractions[g, i, 2], fractions[g, i, 3] = x_free, y_free
 
 
-@njit(cache=True, nogil=True)
-def _block(planes, g, c0, shift):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
-    """Channels c0 … c0 + B of plane g, minus shift, as [H, W, B]."""
-    _, _, height, width = planes.shape
-    block = np.empty((height, width, BLOCK), planes.dtype)
-    for c in range(BLOCK):
-        plane = planes[g, c0 + c]
-        for h in range(height):
+@njit(parallel=True, cache=True, nogil=True)
+def planes_channels_last(planes, shift, values):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """values[g, h, w, c] = planes[g, c, h, w] − shift. One job per (plane, row)."""
+    groups, channels, height, width = planes.shape
+    for job in prange(groups * height):
+        g, h = job // height, job % height
+        for c in range(channels):
+            row = planes[g, c, h]
             for w in range(width):
-                block[h, w, c] = plane[h, w] - shift
-    return block
+                values[g, h, w, c] = row[w] - shift
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _weights(fractions, g, n, one):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
-    """Point n's fractions on plane g, their complements and its four corners' bilinear
-    weights: (fx, fy, 1 − fx, 1 − fy, nw, ne, sw, se)."""
-    fx, fy = fractions[g, n, 0], fractions[g, n, 1]
+def _weights(fractions, n, one):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+    """Point n's fractions, their complements and its four corners' bilinear weights:
+    (fx, fy, 1 − fx, 1 − fy, nw, ne, sw, se)."""
+    fx, fy = fractions[n, 0], fractions[n, 1]
     gx, gy = one - fx, one - fy
     return fx, fy, gx, gy, gx * gy, fx * gy, gx * fy, fx * fy
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def sample_forward(planes, nodes, fractions, shift, one, out):  # type: ignore[no-untyped-def]  # pragma: no cover
-    """out[g, c, n] = plane g's channel c, bilinearly at point n's place (`placements`);
-    planes [G, C, H, W], out [G, C, N]. `one` carries the planes' dtype, so that float32
-    arithmetic stays float32."""
-    groups, channels = planes.shape[:2]
-    blocks = channels // BLOCK
-    for job in prange(groups * blocks):
-        g, c0 = job // blocks, job % blocks * BLOCK
-        block = _block(planes, g, c0, shift)
-        for n in range(nodes.shape[1]):
-            x0, x1, y0, y1 = nodes[g, n, 0], nodes[g, n, 1], nodes[g, n, 2], nodes[g, n, 3]
-            _, _, _, _, nw, ne, sw, se = _weights(fractions, g, n, one)
-            for c in range(BLOCK):
-                value = block[y0, x0, c] * nw + block[y0, x1, c] * ne
-                value += block[y1, x0, c] * sw + block[y1, x1, c] * se
-                out[g, c0 + c, n] = value + shift
+def sample_forward(values, nodes, fractions, shift, one, out):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """out[g, n, c] = plane g's channel c, bilinearly at point n's place (`placements`);
+    values [G, H, W, C] from `planes_channels_last`, out [G, N, C]. `one` carries the planes'
+    dtype, so that float32 arithmetic stays float32."""
+    groups, n = out.shape[0], out.shape[1]
+    chunks = (n + CHUNK - 1) // CHUNK
+    for job in prange(groups * chunks):
+        g, first = job // chunks, job % chunks * CHUNK
+        _forward_chunk(values[g], nodes[g], fractions[g], shift, one, out[g], first,
+                       min(first + CHUNK, n))  # fmt: skip
+
+
+@njit(cache=True, nogil=True, **_NOALIAS)
+def _forward_chunk(values, nodes, fractions, shift, one, out, first, last):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """Points first … last of one plane."""
+    channels = values.shape[2]
+    for n in range(first, last):
+        x0, x1, y0, y1 = nodes[n, 0], nodes[n, 1], nodes[n, 2], nodes[n, 3]
+        _, _, _, _, nw, ne, sw, se = _weights(fractions, n, one)
+        for c in range(channels):
+            value = values[y0, x0, c] * nw + values[y0, x1, c] * ne
+            value += values[y1, x0, c] * sw + values[y1, x1, c] * se
+            out[n, c] = value + shift
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def sample_backward(planes, nodes, fractions, shift, one, scales, upstream, grads, partial):  # type: ignore[no-untyped-def]  # pragma: no cover
-    """From upstream [G, C, N], the gradient of `sample_forward`'s out: grads [G, C, H, W]
-    for the planes, and partial [G, C / B, N, 2], each job's share of the gradient on
-    point n's two columns (summed over the blocks by the caller, in order); scales =
-    ((W − 1)/2, (H − 1)/2), the grid's nodes per unit of coordinate."""
-    groups, channels, height, width = planes.shape
+def sample_backward(values, nodes, fractions, one, scales, upstream, grads, coords):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """From upstream [G, N, C], the gradient of `sample_forward`'s out: grads [G, C, H, W]
+    for the planes and coords [G, N, 2], each plane's gradient on its two coordinate
+    columns at every point (none when coords holds no points); scales = ((W − 1)/2,
+    (H − 1)/2), the grid's nodes per unit of coordinate."""
+    groups, height, width, channels = values.shape
     blocks = channels // BLOCK
+    # Two loops, so that each shares its own kind of job evenly among the threads.
     for job in prange(groups * blocks):
-        g, k = job // blocks, job % blocks
-        c0 = k * BLOCK
-        block = _block(planes, g, c0, shift)
-        sums = np.zeros((height, width, BLOCK), planes.dtype)
-        up = np.empty(BLOCK, planes.dtype)
-        for n in range(nodes.shape[1]):
-            x0, x1, y0, y1 = nodes[g, n, 0], nodes[g, n, 1], nodes[g, n, 2], nodes[g, n, 3]
-            fx, fy, gx, gy, nw, ne, sw, se = _weights(fractions, g, n, one)
-            for c in range(BLOCK):
-                up[c] = upstream[g, c0 + c, n]
-            # One loop a corner: at the last node the corners coincide (x1 = x0), so a
-            # single loop adding to all four could not be vectorised.
-            for c in range(BLOCK):
-                sums[y0, x0, c] += up[c] * nw
-            for c in range(BLOCK):
-                sums[y0, x1, c] += up[c] * ne
-            for c in range(BLOCK):
-                sums[y1, x0, c] += up[c] * sw
-            for c in range(BLOCK):
-                sums[y1, x1, c] += up[c] * se
-            dx = dy = one - one
-            for c in range(BLOCK):
-                v00, v01 = block[y0, x0, c], block[y0, x1, c]
-                v10, v11 = block[y1, x0, c], block[y1, x1, c]
-                dx += up[c] * ((v01 - v00) * gy + (v11 - v10) * fy)
-                dy += up[c] * ((v10 - v00) * gx + (v11 - v01) * fx)
-            partial[g, k, n, 0] = dx * scales[0] * fractions[g, n, 2]
-            partial[g, k, n, 1] = dy * scales[1] * fractions[g, n, 3]
+        g, c0 = job // blocks, job % blocks * BLOCK
+        sums = np.zeros((height, width, BLOCK), values.dtype)
+        _plane_job(nodes[g], fractions[g], one, upstream[g], c0, sums)
         for c in range(BLOCK):
             grad = grads[g, c0 + c]
             for h in range(height):
                 for w in range(width):
                     grad[h, w] = sums[h, w, c]
+    n = coords.shape[1]
+    chunks = (n + CHUNK - 1) // CHUNK
+    for job in prange(groups * chunks):
+        g, first = job // chunks, job % chunks * CHUNK
+        terms = np.empty((2, channels), values.dtype)
+        _coordinate_chunk(values[g], nodes[g], fractions[g], one, scales, upstream[g],
+                          coords[g], first, min(first + CHUNK, n), terms)  # fmt: skip
+
+
+@njit(cache=True, nogil=True, **_NOALIAS)
+def _plane_job(nodes, fractions, one, upstream, c0, sums):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """Add every point's upstream gradient in channels c0 … c0 + B into its four corners of
+    sums [H, W, B], point by point in order."""
+    for n in range(nodes.shape[0]):
+        x0, x1, y0, y1 = nodes[n, 0], nodes[n, 1], nodes[n, 2], nodes[n, 3]
+        _, _, _, _, nw, ne, sw, se = _weights(fractions, n, one)
+        up = upstream[n, c0 : c0 + BLOCK]
+        # One loop a corner: at the last node the corners coincide (x1 = x0), so a
+        # single loop adding to all four could not be vectorised.
+        for c in range(BLOCK):
+            sums[y0, x0, c] += up[c] * nw
+        for c in range(BLOCK):
+            sums[y0, x1, c] += up[c] * ne
+        for c in range(BLOCK):
+            sums[y1, x0, c] += up[c] * sw
+        for c in range(BLOCK):
+            sums[y1, x1, c] += up[c] * se
+
+
+@njit(cache=True, nogil=True, **_NOALIAS)
+def _coordinate_chunk(values, nodes, fractions, one, scales, upstream, coords, first, last, terms):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """coords[n] for points first … last of one plane: Σ_c upstream[n, c] times the
+    bilinear sample's derivative along each axis. The C terms are formed side by side,
+    then channel c is added into lane c mod B in channel order and the B lanes in a
+    fixed tree: an order LLVM can vectorise without reordering a floating-point sum.
+    terms [2, C] is scratch."""
+    channels = values.shape[2]
+    tx, ty = terms[0], terms[1]
+    for n in range(first, last):
+        x0, x1, y0, y1 = nodes[n, 0], nodes[n, 1], nodes[n, 2], nodes[n, 3]
+        fx, fy, gx, gy, _, _, _, _ = _weights(fractions, n, one)
+        for c in range(channels):
+            v00, v01 = values[y0, x0, c], values[y0, x1, c]
+            v10, v11 = values[y1, x0, c], values[y1, x1, c]
+            u = upstream[n, c]
+            tx[c] = u * ((v01 - v00) * gy + (v11 - v10) * fy)
+            ty[c] = u * ((v10 - v00) * gx + (v11 - v01) * fx)
+        for c0 in range(BLOCK, channels, BLOCK):
+            for lane in range(BLOCK):
+                tx[lane] += tx[c0 + lane]
+                ty[lane] += ty[c0 + lane]
+        coords[n, 0] = _tree(tx) * scales[0] * fractions[n, 2]
+        coords[n, 1] = _tree(ty) * scales[1] * fractions[n, 3]
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _tree(lanes):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+    """The first B = 8 lanes summed pairwise, in one fixed order."""
+    return ((lanes[0] + lanes[1]) + (lanes[2] + lanes[3])) + (
+        (lanes[4] + lanes[5]) + (lanes[6] + lanes[7])
+    )

@@ -122,6 +122,19 @@ def test_the_same_to_the_bit_at_any_thread_count() -> None:
             assert torch.equal(a, b)
 
 
+def test_the_planes_gradient_alone_is_the_same_without_the_coordinates() -> None:
+    """Coordinates that need no gradient skip the backward's coordinate jobs; the planes'
+    gradient is the same to the bit, and the reference's to rounding."""
+    planes, coords, upstream = _case((3, 16, 13, 35), 700, torch.float64, seed=4)
+    _, with_coords, _ = _run(ps.sample_group, planes, coords, TIME_COLUMNS, 1.0, upstream)
+    p = planes.clone().requires_grad_(True)
+    ps.sample_group(p, coords, TIME_COLUMNS, 1.0).backward(upstream)
+    assert p.grad is not None
+    assert torch.equal(p.grad, with_coords)
+    _, reference, _ = _run(ps.reference_sample, planes, coords, TIME_COLUMNS, 1.0, upstream)
+    _close(p.grad, reference, 1e-12)
+
+
 def test_channels_that_are_not_a_block_use_the_reference() -> None:
     planes, coords, _ = _case((3, 12, 5, 5), 10, torch.float32, seed=0)
     assert not ps.compiled_usable(planes, coords)
