@@ -125,7 +125,7 @@ class _SampleGroup(torch.autograd.Function):
         upstream = channels_last(grad)
         grads = torch.empty(groups, channels, height, width, dtype=values.dtype)
         # No coordinates' gradient wanted: no points for the coordinates' jobs.
-        per_plane = torch.empty(groups, n if ctx.needs_input_grad[1] else 0, 2, dtype=values.dtype)
+        per_plane = torch.empty(n if ctx.needs_input_grad[1] else 0, groups, 2, dtype=values.dtype)
         kind = _kind(values.dtype)
         scales = np.array([(width - 1) / 2, (height - 1) / 2], dtype=kind)
         run_kernel(sampler_kernels.sample_backward, thread_count(None), str(values.dtype),
@@ -135,9 +135,8 @@ class _SampleGroup(torch.autograd.Function):
         if ctx.needs_input_grad[1]:
             # Each plane's two columns, in the order the reference's index_select backward
             # adds them.
-            per_column = per_plane.transpose(0, 1).reshape(n, 2 * groups)
             coords_grad = torch.zeros(n, ctx.coords_width, dtype=values.dtype)
-            coords_grad.index_add_(1, columns, per_column)
+            coords_grad.index_add_(1, columns, per_plane.view(n, 2 * groups))
         return (grads if ctx.needs_input_grad[0] else None), coords_grad, None, None
 
 

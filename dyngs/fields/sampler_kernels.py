@@ -131,7 +131,7 @@ def _forward_chunk(values, nodes, fractions, shift, one, out, first, last):  # t
 @njit(parallel=True, cache=True, nogil=True)
 def sample_backward(values, nodes, fractions, one, scales, upstream, grads, coords):  # type: ignore[no-untyped-def]  # pragma: no cover
     """From upstream [G, N, C], the gradient of `sample_forward`'s out: grads [G, C, H, W]
-    for the planes and coords [G, N, 2], each plane's gradient on its two coordinate
+    for the planes and coords [N, G, 2], each plane's gradient on its two coordinate
     columns at every point (none when coords holds no points); scales = ((W − 1)/2,
     (H − 1)/2), the grid's nodes per unit of coordinate."""
     groups, height, width, channels = values.shape
@@ -146,13 +146,13 @@ def sample_backward(values, nodes, fractions, one, scales, upstream, grads, coor
             for h in range(height):
                 for w in range(width):
                     grad[h, w] = sums[h, w, c]
-    n = coords.shape[1]
+    n = coords.shape[0]
     chunks = (n + CHUNK - 1) // CHUNK
     for job in prange(groups * chunks):
         g, first = job // chunks, job % chunks * CHUNK
         terms = np.empty((2, channels), values.dtype)
         _coordinate_chunk(values[g], nodes[g], fractions[g], one, scales, upstream[g],
-                          coords[g], first, min(first + CHUNK, n), terms)  # fmt: skip
+                          coords[:, g], first, min(first + CHUNK, n), terms)  # fmt: skip
 
 
 @njit(cache=True, nogil=True, **_NOALIAS)
