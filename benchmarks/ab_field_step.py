@@ -27,16 +27,15 @@ from pathlib import Path
 from types import ModuleType
 
 import torch
-from rich.console import Console
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))  # profile_step, also when loaded by a test
 
-from dyngs.cli import parse  # noqa: E402
-from dyngs.engine.trainer import Trainer  # noqa: E402
-from dyngs.engine.writer import NullWriter  # noqa: E402
+from profile_step import train_command, trainer_at  # noqa: E402
+
 from dyngs.fields import hexplane  # noqa: E402
-from dyngs.tools.common import keep_freed_memory, source_commit, write_report  # noqa: E402
+from dyngs.tools.common import source_commit, write_report  # noqa: E402
 
 MODULES = ("plane_sampler", "sampler_kernels", "product_kernels", "hexplane")
 """The field modules taken from --before, in the order they import one another."""
@@ -78,19 +77,15 @@ def main() -> None:
     )
     parser.add_argument("train", nargs=argparse.REMAINDER, help="-- then a dyngs-train command")
     args = parser.parse_args()
-    command = args.train[1:] if args.train[:1] == ["--"] else args.train
+    command = train_command(args.train)
     torch.set_num_threads(args.threads)
-    keep_freed_memory()  # as dyngs-train does
-    config, _ = parse(command)
     with tempfile.TemporaryDirectory() as folder:
         before = load_before(args.before, Path(folder))
         ways = {
             "before": (before.sample_group, before.compiled_products),
             "this": (hexplane.sample_group, hexplane.compiled_products),
         }
-        trainer = Trainer(config, Path(folder), NullWriter(), Console(quiet=True))
-        for step in range(args.at):
-            trainer.train_step(step)
+        trainer = trainer_at(command, args.at, Path(folder))
         seconds: dict[str, list[float]] = {way: [] for way in ways}
         step = args.at
         for pair in range(args.steps + 1):

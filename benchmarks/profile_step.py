@@ -49,15 +49,10 @@ def main() -> None:
     )
     parser.add_argument("train", nargs=argparse.REMAINDER, help="-- then a dyngs-train command")
     args = parser.parse_args()
-    command = args.train[1:] if args.train[:1] == ["--"] else args.train
+    command = train_command(args.train)
     torch.set_num_threads(args.threads)
-    keep_freed_memory()  # as dyngs-train does
-    config, _ = parse(command)
     with tempfile.TemporaryDirectory() as folder:
-        trainer = Trainer(config, Path(folder), NullWriter(), Console(quiet=True))
-        step = 0
-        for step in range(args.at):
-            trainer.train_step(step)
+        trainer = trainer_at(command, args.at, Path(folder))
         times: list[float] = []
         optimizer_times = time_calls(trainer.optimizer, "step")
         for step in range(args.at, args.at + args.timed):
@@ -95,6 +90,22 @@ def main() -> None:
     }
     args.output.write_text(json.dumps(result, indent=1) + "\n")
     print(f"wrote {args.output}")
+
+
+def train_command(train: list[str]) -> list[str]:
+    """The dyngs-train command after a script's own arguments, without its `--`."""
+    return train[1:] if train[:1] == ["--"] else train
+
+
+def trainer_at(command: list[str], at: int, folder: Path) -> Trainer:
+    """A trainer for the dyngs-train `command`, with dyngs-train's memory settings, trained
+    `at` steps; it writes nothing but scratch files in `folder`."""
+    keep_freed_memory()  # as dyngs-train does
+    config, _ = parse(command)
+    trainer = Trainer(config, folder, NullWriter(), Console(quiet=True))
+    for step in range(at):
+        trainer.train_step(step)
+    return trainer
 
 
 def time_calls(owner: object, name: str) -> list[float]:

@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import sys
 from pathlib import Path
+from types import ModuleType
 
 import pytest
 import torch
@@ -19,13 +20,19 @@ ROOT = Path(__file__).resolve().parents[2]
 pytest.importorskip("numba")
 
 
-def test_the_other_checkouts_modules_load_under_their_own_names(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    ab = load_benchmark("ab_field_step")
+@pytest.fixture
+def ab(monkeypatch: pytest.MonkeyPatch) -> ModuleType:
+    """The script as a module; the paths and `before_*` modules it adds are undone after."""
     monkeypatch.setattr(sys, "path", list(sys.path))
-    for name in ab.MODULES:
+    script = load_benchmark("ab_field_step")
+    for name in script.MODULES:
         monkeypatch.delitem(sys.modules, f"before_{name}", raising=False)
+    return script
+
+
+def test_the_other_checkouts_modules_load_under_their_own_names(
+    ab: ModuleType, tmp_path: Path
+) -> None:
     before = ab.load_before(ROOT, tmp_path)  # this checkout, as the one to compare with
     assert before.__name__ == "before_hexplane"
     assert before.sample_group is not hexplane.sample_group
@@ -41,12 +48,8 @@ def test_the_other_checkouts_modules_load_under_their_own_names(
 
 
 def test_both_ways_are_timed_and_the_field_restored(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    ab: ModuleType, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    ab = load_benchmark("ab_field_step")
-    monkeypatch.setattr(sys, "path", list(sys.path))
-    for name in ab.MODULES:
-        monkeypatch.delitem(sys.modules, f"before_{name}", raising=False)
     sample_group, compiled_products = hexplane.sample_group, hexplane.compiled_products
     output = tmp_path / "ab.json"
     argv = ["--before", str(ROOT), "--at", "2", "--steps", "2", "--threads", "1",
