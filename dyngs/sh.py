@@ -75,10 +75,23 @@ def eval_sh(
     `dirs` need not be unit length; a zero direction keeps only the degree-0 term instead
     of producing NaN.
     """
+    if degree == 0:
+        return eval_sh0(coeffs)
     dirs = dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     basis = sh_basis(degree, dirs)
     rgb = (basis[..., None] * coeffs[..., : basis.shape[-1], :]).sum(dim=-2)
     return (rgb + 0.5).clamp_min(0.0)
+
+
+def eval_sh0(coeffs: Float[Tensor, "N K 3"]) -> Float[Tensor, "N 3"]:
+    """`eval_sh` at degree 0, which needs no direction: Y₀ is the constant SH_C0, so the
+    colour is c₀·SH_C0 + 0.5 (clamped at 0) whichever way the Gaussian is seen. The same
+    values and gradients, to the bit, as the general formula at degree 0 (a sum over one
+    coefficient), without normalising a direction that nothing reads; a renderer calls
+    this before it forms the directions, and skips them too. Most scenes train at degree
+    0 until the view-dependent error asks for more (`--gaussians.sh-evidence`): on the
+    demo, the whole run."""
+    return (coeffs[..., 0, :] * SH_C0 + 0.5).clamp_min(0.0)
 
 
 def rgb_to_sh0(rgb: Tensor) -> Tensor:

@@ -28,7 +28,7 @@ from torch import Tensor
 from dyngs.geometry import covariance_3d
 from dyngs.ops import finite_rows
 from dyngs.renderers.base import Guards
-from dyngs.sh import eval_sh
+from dyngs.sh import eval_sh, eval_sh0
 from dyngs.types import Camera, Gaussians
 
 GEOMETRY_DTYPE = torch.float64
@@ -161,6 +161,8 @@ def project(
 
     if g.sh_degree is None:
         rgb = ready.colors
+    elif g.sh_degree == 0:
+        rgb = eval_sh0(ready.colors)  # no view direction needed
     else:
         # View directions from the float64 camera-relative means: in float32 a scene 1e4
         # units from the origin would shift SH colours by up to 1e-3 against the oracle.
