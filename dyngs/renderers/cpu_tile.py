@@ -1,9 +1,10 @@
 """`cpu-tile`: the fast path on CPUs, with compiled compositing kernels.
 
 Projection (`project_compiled`: `stages.project`'s geometry, forward and backward, in
-`dyngs.renderers.project_kernels`), binning (`bin_tiles_compiled`, the same bins as
-`stages.bin_tiles`) and compositing forward and backward are compiled (numba); only the
-colours (`eval_sh`) stay in PyTorch. Compositing is in
+`dyngs.renderers.project_kernels`), the view-dependent colours (`_Colors`: `sh.eval_sh`
+in `dyngs.renderers.sh_kernels`), binning (`bin_tiles_compiled`, the same bins as
+`stages.bin_tiles`) and compositing forward and backward are compiled (numba), each held
+to its PyTorch specification. Compositing is in
 `dyngs.renderers.tile_kernels`, wrapped in one `torch.autograd.Function`, so gradients
 reach the 2D means (which densification reads), conics, opacities, colours and depths,
 and from there every Gaussian parameter. It is held to `cpu-reference`, the
@@ -41,7 +42,7 @@ from dyngs.renderers.stages import (
     finish_image,
     off_axis_limits,
 )
-from dyngs.sh import eval_sh
+from dyngs.sh import eval_sh0
 from dyngs.types import Camera, Gaussians
 
 
@@ -261,8 +262,8 @@ def project_compiled(
     antialiased: bool = False,
     threads: int | None = None,
 ) -> ScreenGaussians:
-    """`stages.project` with the geometry compiled (`project_kernels`); the colours are
-    `eval_sh` from the same float64 camera-relative means, as there."""
+    """`stages.project` with the geometry compiled (`project_kernels`) and the colours
+    too (`_Colors`: `eval_sh` from the same float64 camera-relative means, as there)."""
     from dyngs.renderers import project_kernels as pk
 
     g = gaussians
@@ -281,10 +282,12 @@ def project_compiled(
     colors = torch.where(finite.view(-1, *[1] * (used.ndim - 1)), used, 0) if nonfinite else used
     if g.sh_degree is None:
         rgb = colors
+    elif g.sh_degree == 0:
+        rgb = eval_sh0(colors)  # no view direction needed
     else:
         means = torch.where(finite[:, None], g.means, 0) if nonfinite else g.means
         center = -w2c[:3, :3].T @ w2c[:3, 3]
-        rgb = eval_sh(g.sh_degree, colors, (means.to(GEOMETRY_DTYPE) - center).to(g.means.dtype))
+        rgb = _Colors.apply(colors, means, center.numpy(), g.sh_degree, view.threads)
     return ScreenGaussians(
         means2d=means2d,
         conics=conics,
@@ -295,6 +298,44 @@ def project_compiled(
         visible=visible,
         num_nonfinite=torch.tensor(nonfinite),
     )
+
+
+class _Colors(torch.autograd.Function):
+    """(SH coefficients [N, K, 3], means [N, 3]) → colours [N, 3] seen from the camera
+    centre: `sh.eval_sh` of the float64 camera-relative means, compiled
+    (`sh_kernels`); the gradients come back in each input's dtype."""
+
+    @staticmethod
+    def forward(  # type: ignore[override]
+        ctx: Any, coeffs: Tensor, means: Tensor, center: np.ndarray, degree: int, threads: int
+    ) -> Tensor:
+        from dyngs.renderers import sh_kernels
+
+        coeffs, means = coeffs.detach().contiguous(), means.detach().contiguous()
+        rgb = torch.empty(len(coeffs), 3, dtype=coeffs.dtype)
+        signature = f"{str(coeffs.dtype)[6:]}/{str(means.dtype)[6:]}"
+        run_kernel(sh_kernels.sh_forward, threads, signature, coeffs.numpy(), means.numpy(),
+                   center, degree, rgb.numpy())  # fmt: skip
+        ctx.save_for_backward(coeffs, means)
+        ctx.settings = (center, degree, threads)
+        return rgb
+
+    @staticmethod
+    def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
+        from dyngs.renderers import sh_kernels
+
+        coeffs, means = ctx.saved_tensors
+        center, degree, threads = ctx.settings
+        coeffs_grad = torch.empty_like(coeffs)
+        means_grad = torch.empty(len(means) if ctx.needs_input_grad[1] else 0, 3,
+                                 dtype=means.dtype)  # fmt: skip
+        upstream = grad.to(coeffs.dtype).contiguous()
+        signature = f"{str(coeffs.dtype)[6:]}/{str(means.dtype)[6:]}"
+        run_kernel(sh_kernels.sh_backward, threads, signature, coeffs.numpy(), means.numpy(),
+                   center, degree, upstream.numpy(), coeffs_grad.numpy(),
+                   means_grad.numpy())  # fmt: skip
+        return (coeffs_grad if ctx.needs_input_grad[0] else None,
+                means_grad if ctx.needs_input_grad[1] else None, None, None, None)  # fmt: skip
 
 
 class _View:
