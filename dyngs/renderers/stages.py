@@ -72,6 +72,18 @@ class Prepared:
         """Means relative to the camera centre, μ − c, in float64."""
         return self.means - self.center
 
+    def seen_colors(self, sh_degree: int | None, dtype: torch.dtype) -> Float[Tensor, "N 3"]:
+        """RGB as the camera sees it: `colors` as they are (`sh_degree` None), or their SH
+        along each mean's direction from the camera centre, in `dtype`."""
+        if sh_degree is None:
+            return self.colors
+        if sh_degree == 0:
+            return eval_sh0(self.colors)  # no view direction needed
+        # View directions from the float64 camera-relative means: in float32 a scene 1e4
+        # units from the origin would shift SH colours by up to 1e-3 against the oracle.
+        # Only the (short) result is rounded to the input dtype.
+        return eval_sh(sh_degree, self.colors, self.relative_means().to(dtype))
+
 
 def prepare(gaussians: Gaussians, camera: Camera) -> Prepared:
     """The first stage of every renderer (see the module docstring)."""
@@ -159,15 +171,7 @@ def project(
         visible = valid & (lo <= hi).all(dim=-1)
         extents = torch.where(visible[:, None], extents, 0)
 
-    if g.sh_degree is None:
-        rgb = ready.colors
-    elif g.sh_degree == 0:
-        rgb = eval_sh0(ready.colors)  # no view direction needed
-    else:
-        # View directions from the float64 camera-relative means: in float32 a scene 1e4
-        # units from the origin would shift SH colours by up to 1e-3 against the oracle.
-        # Only the (short) result is rounded to the input dtype.
-        rgb = eval_sh(g.sh_degree, ready.colors, ready.relative_means().to(g.means.dtype))
+    rgb = ready.seen_colors(g.sh_degree, g.means.dtype)
     return ScreenGaussians(
         means2d=means2d,
         conics=conics,
