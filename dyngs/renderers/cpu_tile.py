@@ -317,7 +317,7 @@ class _Colors(torch.autograd.Function):
         run_kernel(sh_kernels.sh_forward, threads, signature, coeffs.numpy(), means.numpy(),
                    center, degree, rgb.numpy())  # fmt: skip
         ctx.save_for_backward(coeffs, means)
-        ctx.settings = (center, degree, threads)
+        ctx.settings = (center, degree, threads, signature)
         return rgb
 
     @staticmethod
@@ -325,12 +325,11 @@ class _Colors(torch.autograd.Function):
         from dyngs.renderers import sh_kernels
 
         coeffs, means = ctx.saved_tensors
-        center, degree, threads = ctx.settings
+        center, degree, threads, signature = ctx.settings
         coeffs_grad = torch.empty_like(coeffs)
         means_grad = torch.empty(len(means) if ctx.needs_input_grad[1] else 0, 3,
                                  dtype=means.dtype)  # fmt: skip
         upstream = grad.to(coeffs.dtype).contiguous()
-        signature = f"{str(coeffs.dtype)[6:]}/{str(means.dtype)[6:]}"
         run_kernel(sh_kernels.sh_backward, threads, signature, coeffs.numpy(), means.numpy(),
                    center, degree, upstream.numpy(), coeffs_grad.numpy(),
                    means_grad.numpy())  # fmt: skip

@@ -99,6 +99,16 @@ def _direction(means, center, n):  # type: ignore[no-untyped-def]  # pragma: no 
     return dx, dy, dz, norm, divisor, dx / divisor, dy / divisor, dz / divisor
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _unclamped(basis, coeffs, n, c):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """Channel c of Gaussian n before the clamp, Σ_k Y_k · coeffs[n, k, c] + 0.5, in float64:
+    the forward's value, and the backward's test of where the clamp passes the gradient."""
+    total = 0.0
+    for k in range(coeffs.shape[1]):
+        total += basis[k] * np.float64(coeffs[n, k, c])
+    return total + 0.5
+
+
 @njit(parallel=True, cache=True, nogil=True, error_model="numpy")
 def sh_forward(coeffs, means, center, degree, rgb):  # type: ignore[no-untyped-def]  # pragma: no cover
     """rgb[n] = max(Σ_k Y_k(dir_n) · coeffs[n, k] + 0.5, 0), dir_n = means[n] − center;
@@ -110,10 +120,7 @@ def sh_forward(coeffs, means, center, degree, rgb):  # type: ignore[no-untyped-d
             _, _, _, _, _, x, y, z = _direction(means, center, n)
             _basis(x, y, z, degree, basis)
             for c in range(3):
-                total = 0.0
-                for k in range(coeffs.shape[1]):
-                    total += basis[k] * np.float64(coeffs[n, k, c])
-                rgb[n, c] = max(total + 0.5, 0.0)
+                rgb[n, c] = max(_unclamped(basis, coeffs, n, c), 0.0)
 
 
 @njit(parallel=True, cache=True, nogil=True, error_model="numpy")
@@ -129,10 +136,8 @@ def sh_backward(coeffs, means, center, degree, upstream, coeffs_grad, means_grad
             dx, dy, dz, norm, divisor, x, y, z = _direction(means, center, n)
             _basis(x, y, z, degree, basis)
             for c in range(3):  # the clamp's gradient: where its input is ≥ 0
-                total = 0.0
-                for k in range(coeffs.shape[1]):
-                    total += basis[k] * np.float64(coeffs[n, k, c])
-                passed[c] = np.float64(upstream[n, c]) if total + 0.5 >= 0.0 else 0.0
+                free = _unclamped(basis, coeffs, n, c) >= 0.0
+                passed[c] = np.float64(upstream[n, c]) if free else 0.0
             for k in range(coeffs.shape[1]):
                 pull[k] = 0.0
                 for c in range(3):
