@@ -36,13 +36,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from profile_step import train_command  # noqa: E402
+from profile_step import train_command, trainer_at  # noqa: E402
 
-from dyngs.cli import parse  # noqa: E402
 from dyngs.engine import schedules  # noqa: E402
 from dyngs.engine.trainer import Trainer  # noqa: E402
-from dyngs.engine.writer import NullWriter  # noqa: E402
-from dyngs.tools.common import keep_freed_memory, machine_info, source_commit  # noqa: E402
+from dyngs.tools.common import machine_info, source_commit  # noqa: E402
 
 
 def main() -> None:
@@ -56,7 +54,6 @@ def main() -> None:
     args = parser.parse_args()
     command = train_command(args.train)
     torch.set_num_threads(args.threads)
-    keep_freed_memory()  # as dyngs-train does
     console = Console()
     with tempfile.TemporaryDirectory() as folder:
         trainers = {name: trainer(command, name, Path(folder)) for name in args.renderers}
@@ -82,9 +79,9 @@ def main() -> None:
 
 
 def trainer(command: list[str], renderer: str, folder: Path) -> Trainer:
-    """A trainer for the dyngs-train `command` with `renderer`, its run folder in `folder`."""
-    config, _ = parse([*command, f"renderer:{renderer}"])
-    return Trainer(config, folder / renderer, NullWriter(), Console(quiet=True))
+    """An untrained trainer for the dyngs-train `command` with `renderer`, its run folder
+    in `folder` (`profile_step.trainer_at`, at step 0)."""
+    return trainer_at([*command, f"renderer:{renderer}"], 0, folder / renderer)
 
 
 def alternate(trainers: dict[str, Trainer], console: Console) -> dict[str, float]:
