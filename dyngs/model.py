@@ -516,8 +516,11 @@ class DynamicGaussians(nn.Module):
         if presence is not None and absent_below > 0:
             only = presence.detach().double() >= absent_below  # exactly as the floor reads
         raw = self.raw_at(t, self.deforming if deform is None else deform, only)
-        sh = torch.cat((raw["sh_dc"], raw["sh_rest"]), dim=1)
         degree = self.active_sh_degree if sh_degree is None else sh_degree
+        # Only the bands drawn: the demo draws 4 of 16 coefficients, and the rest would be
+        # copied forward and zero-filled backward on every step for nothing.
+        rest = raw["sh_rest"][:, : num_sh_bases(degree) - 1]
+        sh = torch.cat((raw["sh_dc"], rest), dim=1)
         g = activate(
             raw["means"], raw["quats"], raw["log_scales"], raw["opacity_logits"], sh, degree,
             presence,

@@ -42,3 +42,28 @@ def test_degree_0_reads_only_the_first_coefficient() -> None:
     coeffs[:, 1:] = torch.nan  # the degree-1 band, unread at degree 0
     coeffs[1, 0] = torch.tensor([1.0, -1.0, 0.0]) / SH_C0
     assert torch.equal(eval_sh0(coeffs), torch.tensor([[0.5, 0.5, 0.5], [1.5, 0.0, 0.5]]))
+
+
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+def test_the_model_draws_its_degrees_bands_and_the_rest_get_zero_gradients(degree: int) -> None:
+    # `DynamicGaussians.at` joins only the bands a degree draws; the coefficients above get
+    # a zero gradient, as when all sixteen were joined and sliced (Adam reads that tensor).
+    from dyngs.fields import DeformationHeadConfig, HexPlaneConfig
+    from dyngs.model import DynamicGaussians, GaussianConfig
+    from dyngs.types import SceneBox
+
+    gen = torch.Generator().manual_seed(degree)
+    box = SceneBox((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
+    model = DynamicGaussians.build(GaussianConfig(), HexPlaneConfig(resolution=(4, 4, 4, 3)),
+                                   DeformationHeadConfig(), box, 50, gen)  # fmt: skip
+    with torch.no_grad():
+        model.canonical.sh_rest.normal_(generator=gen)
+    drawn = model.at(0.5, sh_degree=degree, deform=False)
+    bands = (degree + 1) ** 2
+    whole = torch.cat((model.canonical.sh_dc, model.canonical.sh_rest), dim=1)
+    assert torch.equal(drawn.colors, whole[:, :bands])
+    drawn.colors.square().sum().backward()
+    grad = model.canonical.sh_rest.grad
+    assert grad is not None and grad.shape == model.canonical.sh_rest.shape
+    assert torch.equal(grad[:, bands - 1 :], torch.zeros_like(grad[:, bands - 1 :]))
+    assert torch.equal(grad[:, : bands - 1], 2 * whole[:, 1:bands].detach())
