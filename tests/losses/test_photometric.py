@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import importlib
+
+import numpy as np
 import pytest
 import torch
 from kornia.losses import ssim_loss
@@ -128,6 +131,24 @@ def test_gradients_reach_the_prediction(weight: float) -> None:
     assert torch.isfinite(pred.grad).all() and pred.grad.abs().sum() > 0
 
 
+def test_the_targets_moments_cost_no_adjoint_pass(monkeypatch: pytest.MonkeyPatch) -> None:
+    # A training target needs no gradient, so SSIM's backward blurs back the prediction's
+    # three moments (9 channels of RGB), not all five (15).
+    pytest.importorskip("numba")
+    module = importlib.import_module("dyngs.losses.photometric")  # the package's name is a function
+    passes: list[tuple[str, int]] = []
+    inner = module.run_kernel
+
+    def recorded(kernel: object, count: int, signature: str, *args: np.ndarray) -> None:
+        passes.append((getattr(kernel, "__name__", ""), args[0].shape[0]))
+        inner(kernel, count, signature, *args)
+
+    monkeypatch.setattr(module, "run_kernel", recorded)
+    pred = _rand(20, 16, 3).requires_grad_()
+    dssim(pred, _rand(20, 16, 3, seed=1)).backward()
+    assert sorted(passes) == [("blur", 6), ("blur", 9), ("blur_adjoint", 9)]
+
+
 def test_shape_mismatch_is_an_error() -> None:
     with pytest.raises(ValueError, match="H, W, C"):
         l1(torch.zeros(2, 2, 3), torch.zeros(2, 3, 3))
@@ -163,13 +184,13 @@ def _map_and_grad(
     ("height", "width", "window"), [(64, 48, 11), (17, 30, 11), (9, 9, 7), (3, 5, 11)]
 )
 def test_ssim_map_is_kornias(padding: str, height: int, width: int, window: int) -> None:
-    # The map batches kornia's five moment filters into one call, compiled on a CPU; it
-    # must be kornia's `metrics.ssim` (eps 0), values and gradients, for every padding and
-    # window fit. In float64 to 1e-13. In float32 the map's own arithmetic rounds at ~1e-6,
-    # and a filter that sums in another order than kornia's convolution differs from it by
-    # that much; so there both are held to the float64 map: ours within 2e-6 (kornia's own
-    # float32 map errs by up to 2.7e-6 on these cases, ours by up to 1.3e-6) and its
-    # gradient within 1e-6 of the largest entry of the float64 one.
+    # The map filters kornia's five moments in two calls (the prediction's three, the target's
+    # two), compiled on a CPU; it must be kornia's `metrics.ssim` (eps 0), values and gradients,
+    # for every padding and window fit. In float64 to 1e-13. In float32 the map's own arithmetic
+    # rounds at ~1e-6, and a filter that sums in another order than kornia's convolution differs
+    # from it by that much; so there both are held to the float64 map: ours within 2e-6
+    # (kornia's own float32 map errs by up to 2.7e-6 on these cases, ours by up to 1.3e-6) and
+    # its gradient within 1e-6 of the largest entry of the float64 one.
     gen = torch.Generator().manual_seed(height * width)
     pred = torch.rand(height, width, 3, generator=gen, dtype=torch.float64)
     target = torch.rand(height, width, 3, generator=gen, dtype=torch.float64)
