@@ -8,10 +8,12 @@ Which SSIM. `ssim_map` is `kornia.metrics.ssim`: a Gaussian window (σ = 1.5 wha
 size), c1 = (0.01)², c2 = (0.03)² for data range 1, with kornia's `eps` set to 0 so that
 SSIM(x, x) is exactly 1 even for flat images (its default 1e-12 makes two black images
 score 0.99998889). It is computed as kornia computes it, with kornia's window and
-separable filter, but the five local moments (x, y, x², y², xy) go through one filter call
-as fifteen channels instead of five calls of three, which is faster on small images
-(docs/TRAINING.md measures it), and on a CPU that filter is compiled (`gaussian_blur`);
-tests/losses/test_photometric.py holds it to kornia's own function. The loss uses
+separable filter, but the five local moments (x, y, x², y², xy) go through two filter
+calls (the prediction's three, then the target's two, which need no backward pass) instead
+of five, which is faster on small images (docs/TRAINING.md measures it). On a CPU the
+filter is compiled (`gaussian_blur`), and so is the map from the moments
+(`ssim_kernels`, whose PyTorch reference is `ssim_from_moments`);
+tests/losses/test_photometric.py holds the whole to kornia's own function. The loss uses
 D-SSIM = 1 − SSIM, as 3D Gaussian Splatting does, so that its
 λ = 0.2 carries over; `kornia.losses.ssim_loss` is (1 − SSIM) / 2, clamped, which
 would silently halve the weight. The training map is 'same' size with reflect padding;
@@ -40,6 +42,10 @@ DSSIM_WEIGHT = 0.2
 
 SSIM_WINDOW = 11
 """Window size of standard SSIM (Wang et al. 2004): 11×11 Gaussian, σ = 1.5."""
+
+C1, C2 = 0.01**2, 0.03**2
+"""SSIM's stabilisers for data range 1 (Wang et al. 2004): (K1 L)², (K2 L)², K1 = 0.01,
+K2 = 0.03."""
 
 Padding = Literal["same", "valid"]
 
@@ -96,7 +102,7 @@ def gaussian_blur(images: Float[Tensor, "1 C H W"], taps: Float[Tensor, "1 K"]) 
     `dyngs.losses.blur_kernels` (3.5× faster forward and backward on SSIM's fifteen
     channels at 128², where PyTorch runs one small convolution per channel; float64 the
     same to the bit forward, float32 within its rounding: tests/losses/test_blur.py)."""
-    if images.device.type != "cpu" or not numba_available():
+    if not _compiled_here(images):
         return filter2d_separable(images, taps, taps)
     return _CompiledBlur.apply(images, taps)
 
@@ -152,13 +158,62 @@ def ssim_map(
     predicted = _blurred(torch.cat((a, a * a, a * b), 1), kernel, window, padding)
     mu1, mean11, mean12 = predicted.split(channels, dim=1)
     mu2, mean22 = _blurred(torch.cat((b, b * b), 1), kernel, window, padding).split(channels, 1)
+    if _compiled_here(mu1) and not (mu2.requires_grad or mean22.requires_grad):
+        ssim = _CompiledSsim.apply(mu1, mean11, mean12, mu2, mean22)
+    else:
+        ssim = ssim_from_moments(mu1, mean11, mean12, mu2, mean22)
+    return ssim[0].permute(1, 2, 0)
+
+
+def ssim_from_moments(
+    mu1: Tensor, mean11: Tensor, mean12: Tensor, mu2: Tensor, mean22: Tensor
+) -> Tensor:
+    """SSIM from the blurred moments μx, ⟨x²⟩, ⟨xy⟩, μy, ⟨y²⟩ (x the prediction, y the
+    target), as kornia computes it with eps 0; the specification `ssim_kernels` is held
+    to."""
     mu1_sq, mu2_sq, mu1_mu2 = mu1**2, mu2**2, mu1 * mu2
-    c1, c2 = 0.01**2, 0.03**2
-    num = (2.0 * mu1_mu2 + c1) * (2.0 * (mean12 - mu1_mu2) + c2)
+    num = (2.0 * mu1_mu2 + C1) * (2.0 * (mean12 - mu1_mu2) + C2)
     # No eps: c1 and c2 already keep the denominator ≥ c1·c2 > 0 (up to a rounding of the
     # variances that is far below c2 = 9e-4).
-    den = (mu1_sq + mu2_sq + c1) * ((mean11 - mu1_sq) + (mean22 - mu2_sq) + c2)
-    return (num / den)[0].permute(1, 2, 0)
+    den = (mu1_sq + mu2_sq + C1) * ((mean11 - mu1_sq) + (mean22 - mu2_sq) + C2)
+    return num / den
+
+
+class _CompiledSsim(torch.autograd.Function):
+    """`ssim_from_moments` by `ssim_kernels`, one pass each way; the target's moments get
+    no gradient (the caller takes this path only when they need none)."""
+
+    @staticmethod
+    def forward(ctx: Any, *moments: Tensor) -> Tensor:  # type: ignore[override]
+        from dyngs.losses import ssim_kernels
+
+        kept = tuple(m.detach().contiguous() for m in moments)
+        out = torch.empty_like(kept[0])
+        run_kernel(ssim_kernels.ssim_forward, thread_count(None), str(out.dtype),
+                   *_flat(*kept), C1, C2, *_flat(out))  # fmt: skip
+        ctx.save_for_backward(*kept)
+        return out
+
+    @staticmethod
+    def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
+        from dyngs.losses import ssim_kernels
+
+        kept = ctx.saved_tensors
+        upstream = grad.to(kept[0].dtype).contiguous()
+        grads = tuple(torch.empty_like(kept[0]) for _ in range(3))
+        run_kernel(ssim_kernels.ssim_backward, thread_count(None), str(upstream.dtype),
+                   *_flat(*kept), C1, C2, *_flat(upstream, *grads))  # fmt: skip
+        return (*grads, None, None)
+
+
+def _flat(*tensors: Tensor) -> tuple[np.ndarray, ...]:
+    """Contiguous tensors' memory as flat NumPy arrays (no copy)."""
+    return tuple(t.numpy().reshape(-1) for t in tensors)
+
+
+def _compiled_here(tensor: Tensor) -> bool:
+    """Whether the compiled kernels serve this tensor (a CPU one, numba installed)."""
+    return tensor.device.type == "cpu" and numba_available()
 
 
 def _blurred(

@@ -146,7 +146,8 @@ def test_the_targets_moments_cost_no_adjoint_pass(monkeypatch: pytest.MonkeyPatc
     monkeypatch.setattr(module, "run_kernel", recorded)
     pred = _rand(20, 16, 3).requires_grad_()
     dssim(pred, _rand(20, 16, 3, seed=1)).backward()
-    assert sorted(passes) == [("blur", 6), ("blur", 9), ("blur_adjoint", 9)]
+    blurs = sorted(p for p in passes if p[0].startswith("blur"))
+    assert blurs == [("blur", 6), ("blur", 9), ("blur_adjoint", 9)]
 
 
 def test_shape_mismatch_is_an_error() -> None:
