@@ -26,7 +26,7 @@ def ab(monkeypatch: pytest.MonkeyPatch) -> ModuleType:
     monkeypatch.setattr(sys, "path", list(sys.path))
     script = load_benchmark("ab_field_step")
     for name in script.MODULES:
-        monkeypatch.delitem(sys.modules, f"before_{name}", raising=False)
+        monkeypatch.delitem(sys.modules, f"before_dyngs_fields_{name}", raising=False)
     return script
 
 
@@ -34,9 +34,9 @@ def test_the_other_checkouts_modules_load_under_their_own_names(
     ab: ModuleType, tmp_path: Path
 ) -> None:
     before = ab.load_before(ROOT, tmp_path)  # this checkout, as the one to compare with
-    assert before.__name__ == "before_hexplane"
+    assert before.__name__ == "before_dyngs_fields_hexplane"
     assert before.sample_group is not hexplane.sample_group
-    assert sys.modules["before_plane_sampler"].sample_group is before.sample_group
+    assert sys.modules["before_dyngs_fields_plane_sampler"].sample_group is before.sample_group
     generator = torch.Generator().manual_seed(0)
     planes = torch.randn(3, 8, 6, 7, generator=generator)
     coords = torch.rand(40, 4, generator=generator) * 2 - 1
