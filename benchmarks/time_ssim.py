@@ -4,8 +4,9 @@
 
 `dyngs.losses.photometric.ssim_map` computes kornia's SSIM (Gaussian window σ = 1.5,
 reflect padding, eps 0) with kornia's own window and separable filter, but filters the
-five local moments (x, y, x², y², xy) in one call of fifteen channels, where
-`kornia.metrics.ssim` makes five calls of three. This script times one forward and
+five local moments (x, y, x², y², xy) in two calls, the prediction's three and the
+target's two, where `kornia.metrics.ssim` makes five calls of three, and on a CPU both the
+filter and the map from the moments are compiled. This script times one forward and
 backward of each on random H×W×3 float32 images, interleaved over `--repeats` rounds,
 and reports the medians, after checking that the two maps agree. It writes the figures to
 `--output` as JSON.

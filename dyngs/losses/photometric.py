@@ -169,8 +169,8 @@ def ssim_from_moments(
     mu1: Tensor, mean11: Tensor, mean12: Tensor, mu2: Tensor, mean22: Tensor
 ) -> Tensor:
     """SSIM from the blurred moments μx, ⟨x²⟩, ⟨xy⟩, μy, ⟨y²⟩ (x the prediction, y the
-    target), as kornia computes it with eps 0; the specification `ssim_kernels` is held
-    to."""
+    target), as kornia computes it with eps 0: the specification that `ssim_kernels`
+    is held to."""
     mu1_sq, mu2_sq, mu1_mu2 = mu1**2, mu2**2, mu1 * mu2
     num = (2.0 * mu1_mu2 + C1) * (2.0 * (mean12 - mu1_mu2) + C2)
     # No eps: c1 and c2 already keep the denominator ≥ c1·c2 > 0 (up to a rounding of the
