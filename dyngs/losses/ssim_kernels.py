@@ -27,6 +27,18 @@ import numpy as np
 from numba import njit, prange
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _terms(mu_x, mean_xx, mean_xy, mu_y, mean_yy, c1, c2, i):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """Pixel i's μx, μy and the map's four factors a1, a2, b1, b2 (module docstring), in
+    float64: what the forward divides and the backward differentiates."""
+    x, y = np.float64(mu_x[i]), np.float64(mu_y[i])
+    a1 = 2.0 * (x * y) + c1
+    a2 = 2.0 * (np.float64(mean_xy[i]) - x * y) + c2
+    b1 = x * x + y * y + c1
+    b2 = (np.float64(mean_xx[i]) - x * x) + (np.float64(mean_yy[i]) - y * y) + c2
+    return x, y, a1, a2, b1, b2
+
+
 @njit(parallel=True, cache=True, nogil=True)
 def ssim_forward(
     mu_x: np.ndarray,
@@ -40,11 +52,7 @@ def ssim_forward(
 ) -> None:  # pragma: no cover - compiled
     """out [P] = SSIM of every pixel (all arrays flat [P])."""
     for i in prange(out.shape[0]):
-        x, y = np.float64(mu_x[i]), np.float64(mu_y[i])
-        a1 = 2.0 * (x * y) + c1
-        a2 = 2.0 * (np.float64(mean_xy[i]) - x * y) + c2
-        b1 = x * x + y * y + c1
-        b2 = (np.float64(mean_xx[i]) - x * x) + (np.float64(mean_yy[i]) - y * y) + c2
+        _, _, a1, a2, b1, b2 = _terms(mu_x, mean_xx, mean_xy, mu_y, mean_yy, c1, c2, i)
         out[i] = (a1 * a2) / (b1 * b2)
 
 
@@ -64,11 +72,7 @@ def ssim_backward(
 ) -> None:  # pragma: no cover - compiled
     """The upstream gradient `grad` [P] of the map, carried to μx, ⟨x²⟩ and ⟨xy⟩."""
     for i in prange(grad.shape[0]):
-        x, y = np.float64(mu_x[i]), np.float64(mu_y[i])
-        a1 = 2.0 * (x * y) + c1
-        a2 = 2.0 * (np.float64(mean_xy[i]) - x * y) + c2
-        b1 = x * x + y * y + c1
-        b2 = (np.float64(mean_xx[i]) - x * x) + (np.float64(mean_yy[i]) - y * y) + c2
+        x, y, a1, a2, b1, b2 = _terms(mu_x, mean_xx, mean_xy, mu_y, mean_yy, c1, c2, i)
         den = b1 * b2
         s = (a1 * a2) / den
         g = np.float64(grad[i])
