@@ -81,7 +81,6 @@ class Swap:
     """One name swapped: `owner.attribute` is `before` in the before steps, `this` in the
     others."""
 
-    label: str
     owner: Any
     attribute: str
     before: Any
@@ -101,7 +100,7 @@ class Swap:
             this, old_value = owner.__dict__[attribute], old.__dict__[attribute]
         else:
             this, old_value = getattr(owner, attribute), getattr(old, attribute)
-        return cls(spec, owner, attribute, old_value, this)
+        return cls(owner, attribute, old_value, this)
 
     def use(self, way: str) -> None:
         setattr(self.owner, self.attribute, self.before if way == "before" else self.this)
