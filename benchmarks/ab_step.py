@@ -21,6 +21,11 @@ checkouts, such as its compiled kernels; list them before the modules that impor
 Every other import is this checkout's. A swap replaces NAME where it is looked up: a caller
 that took it with `from MODULE import NAME` keeps this checkout's, so swap it in the
 caller's module too, or swap the caller.
+
+The copies are kept in --before's `.ab_step` folder, so that numba caches their kernels
+there. A kernel can run at another speed compiled in the process than loaded from numba's
+disk cache, as every run after a user's first loads it, so the first A/B of a --before
+(whose copies compile) says so, and the second times both ways as users get them.
 """
 
 from __future__ import annotations
@@ -32,6 +37,7 @@ import statistics
 import sys
 import tempfile
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType
@@ -47,6 +53,10 @@ from profile_step import train_command, trainer_at  # noqa: E402
 
 from dyngs.tools.common import source_commit, write_report  # noqa: E402
 
+BEFORE_FOLDER = ".ab_step"
+"""Where --before's modules are copied, inside --before: kept, so that numba loads their
+kernels from its disk cache from the second A/B on, as this checkout's are loaded."""
+
 
 def before_name(module: str) -> str:
     """The name --before's `module` is loaded under: `dyngs.a.b` → `before_dyngs_a_b`."""
@@ -55,7 +65,9 @@ def before_name(module: str) -> str:
 
 def load_before(checkout: Path, folder: Path, modules: list[str]) -> dict[str, ModuleType]:
     """--before's `modules` (dotted names, each after those it imports), each one's source
-    copied into `folder` under `before_name`, its imports of the others pointed there."""
+    copied into `folder` under `before_name`, its imports of the others pointed there. A
+    copy is rewritten only when its text changes: numba's disk cache is keyed on the
+    file's modification time, and it must survive from one A/B to the next."""
     for module in modules:
         source = (checkout / Path(*module.split("."))).with_suffix(".py").read_text()
         for other in modules:
@@ -63,7 +75,9 @@ def load_before(checkout: Path, folder: Path, modules: list[str]) -> dict[str, M
             source = source.replace(f"from {package} import {leaf}\n",
                                     f"import {before_name(other)} as {leaf}\n")  # fmt: skip
             source = source.replace(f"from {other} import", f"from {before_name(other)} import")
-        (folder / f"{before_name(module)}.py").write_text(source)
+        copy = folder / f"{before_name(module)}.py"
+        if not copy.exists() or copy.read_text() != source:
+            copy.write_text(source)
     sys.path.insert(0, str(folder))
     loaded = {}
     for module in modules:
@@ -74,6 +88,19 @@ def load_before(checkout: Path, folder: Path, modules: list[str]) -> dict[str, M
         sys.modules[name] = loaded[module]
         spec.loader.exec_module(loaded[module])
     return loaded
+
+
+def compiled_here(modules: Iterable[ModuleType]) -> list[str]:
+    """The compiled kernels of `modules` that numba compiled in this process rather than
+    loading them from its disk cache. The two can differ in speed (numba issue #8085: a
+    plane-product backward took 0.9 ms compiled in the process and 1.9 ms loaded from the
+    cache, docs/TRAINING.md), so an A/B of kernels compares them loaded the same way."""
+    return [
+        f"{module.__name__}.{name}"
+        for module in modules
+        for name, value in vars(module).items()
+        if sum(getattr(getattr(value, "stats", None), "cache_misses", {}).values())
+    ]
 
 
 @dataclass(frozen=True)
@@ -159,12 +186,19 @@ def run(
     milliseconds a step each way."""
     torch.set_num_threads(threads)
     modules = list(dict.fromkeys([*also, *(spec.partition(":")[0] for spec in swaps)]))
+    copies = checkout / BEFORE_FOLDER
+    copies.mkdir(exist_ok=True)
     with tempfile.TemporaryDirectory() as folder:
-        before = load_before(checkout, Path(folder), modules)
+        before = load_before(checkout, copies, modules)
         chosen = [Swap.parse(spec, before) for spec in swaps]
         trainer = trainer_at(command, at, Path(folder))
         medians = {way: s * 1e3 for way, s in time_both_ways(trainer, chosen, at, pairs).items()}
         gaussians, dynamic = len(trainer.model.canonical), trainer.model.dynamic_fraction()
+    if fresh := compiled_here(before.values()):
+        print(
+            f"note: --before's {', '.join(fresh)} compiled in this process, not loaded from "
+            "numba's cache as this checkout's were; run again to time both as users get them"
+        )
     print(
         f"step {at}: before {medians['before']:.2f} ms, this {medians['this']:.2f} ms a step "
         f"({medians['before'] / medians['this']:.3f}×; medians of {pairs}), "

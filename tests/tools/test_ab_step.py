@@ -48,6 +48,27 @@ def test_modules_load_under_their_own_names_and_import_each_other(
                        photometric.ssim_map(pred, target))  # fmt: skip
 
 
+def test_copies_are_kept_for_numbas_cache_and_fresh_kernels_are_named(
+    ab: ModuleType, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    before = ab.load_before(ROOT, tmp_path, MODULES)
+    copy = tmp_path / "before_dyngs_losses_ssim_kernels.py"
+    written = copy.stat().st_mtime_ns
+    gen = torch.Generator().manual_seed(1)
+    pred, target = torch.rand(2, 20, 18, 3, generator=gen)
+    before[PHOTOMETRIC].ssim_map(pred, target)  # runs the copies' kernels
+    # The copies compiled in this process (into tmp_path, a cache of their own): named.
+    fresh = ab.compiled_here(before.values())
+    assert "before_dyngs_losses_ssim_kernels.ssim_forward" in fresh
+    assert all(name.startswith("before_dyngs_losses_ssim_kernels.") for name in fresh)
+    assert ab.compiled_here([before["dyngs.model"]]) == []  # no kernels at all
+    # Loaded again, an unchanged copy is not rewritten: its cache stays valid.
+    for name in MODULES:
+        monkeypatch.delitem(sys.modules, ab.before_name(name))
+    ab.load_before(ROOT, tmp_path, MODULES)
+    assert copy.stat().st_mtime_ns == written
+
+
 def test_a_swap_of_a_method_takes_the_raw_function_and_puts_it_back(
     ab: ModuleType, tmp_path: Path
 ) -> None:
