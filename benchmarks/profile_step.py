@@ -4,7 +4,8 @@
 
 Everything after `--` is a `dyngs-train` command line (no run folder is written). The
 script trains `--at` steps unprofiled, times `--timed` steps (the median step, wall
-clock), then runs `--steps` steps under `torch.profiler` and prints its table of
+clock) and each compiled kernel's time in them (`dyngs.compiled.kernel_times`, timed
+where it runs), then runs `--steps` steps under `torch.profiler` and prints its table of
 operators by self CPU time. It writes the step time, the Gaussian count and the top
 operators (self CPU ms per step, calls per step) to `--output` as JSON. Profiler
 overhead inflates the profiled steps: read the table for shares, the timed median for
@@ -32,6 +33,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from dyngs.cli import parse  # noqa: E402
+from dyngs.compiled import kernel_times  # noqa: E402
 from dyngs.engine.trainer import Trainer  # noqa: E402
 from dyngs.engine.writer import NullWriter  # noqa: E402
 from dyngs.tools.common import keep_freed_memory, machine_info, source_commit  # noqa: E402
@@ -55,10 +57,11 @@ def main() -> None:
         trainer = trainer_at(command, args.at, Path(folder))
         times: list[float] = []
         optimizer_times = time_calls(trainer.optimizer, "step")
-        for step in range(args.at, args.at + args.timed):
-            started = time.perf_counter()
-            trainer.train_step(step)
-            times.append(time.perf_counter() - started)
+        with kernel_times() as launches:
+            for step in range(args.at, args.at + args.timed):
+                started = time.perf_counter()
+                trainer.train_step(step)
+                times.append(time.perf_counter() - started)
         optimizer_times = optimizer_times.copy()  # the profiled steps below add to the list
         first = args.at + args.timed
         with profile(activities=[ProfilerActivity.CPU]) as prof:
@@ -70,9 +73,15 @@ def main() -> None:
     print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=args.top))
     step_ms = statistics.median(times) * 1e3
     optimizer_ms = statistics.median(optimizer_times) * 1e3
+    kernels = kernels_per_step(launches, args.timed)
+    for name, k in kernels.items():
+        print(f"{name:>28}  {k['ms']:6.3f} ms a step  ({k['calls']:.2f} calls, "
+              f"median {k['median_call_ms']:.3f} ms)")  # fmt: skip
     print(
         f"step {args.at}: median {step_ms:.1f} ms over {args.timed} steps (the optimizer's "
-        f"step {optimizer_ms:.2f} ms of it), {gaussians} Gaussians, {dynamic:.0%} dynamic"
+        f"step {optimizer_ms:.2f} ms of it, the compiled kernels "
+        f"{sum(k['ms'] for k in kernels.values()):.1f} ms timed in place), "
+        f"{gaussians} Gaussians, {dynamic:.0%} dynamic"
     )
     result = {
         "command": " ".join(command),
@@ -81,6 +90,7 @@ def main() -> None:
         "optimizer_step_ms_median": optimizer_ms,
         "gaussians": gaussians,
         "dynamic_fraction": dynamic,
+        "kernels_ms_per_step": kernels,
         "operators_self_ms_per_step": {
             e.key: {"ms": e.self_cpu_time_total / 1e3 / args.steps, "calls": e.count / args.steps}
             for e in averages[: args.top]
@@ -90,6 +100,20 @@ def main() -> None:
     }
     args.output.write_text(json.dumps(result, indent=1) + "\n")
     print(f"wrote {args.output}")
+
+
+def kernels_per_step(launches: dict[str, list[float]], steps: int) -> dict[str, dict[str, float]]:
+    """Each compiled kernel's wall time a step (ms, the mean over `steps` steps), launches a
+    step and median launch (ms), from `kernel_times`' seconds, the costliest first."""
+    rows = {
+        name: {
+            "ms": sum(seconds) * 1e3 / steps,
+            "calls": len(seconds) / steps,
+            "median_call_ms": statistics.median(seconds) * 1e3,
+        }
+        for name, seconds in launches.items()
+    }
+    return dict(sorted(rows.items(), key=lambda row: -row[1]["ms"]))
 
 
 def train_command(train: list[str]) -> list[str]:
