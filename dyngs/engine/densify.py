@@ -51,6 +51,11 @@ class DensifyConfig:
     reset_opacity_every: int = 3000
     """Clamp every opacity to `reset_opacity` this often while densifying (0: never)."""
     reset_opacity: float = 0.01
+    pause_after_reset: int = 0
+    """Refinements skipped for this many steps after each opacity reset, so that clones,
+    splits and prunes are judged on opacities that have grown back rather than on the
+    errors the reset itself made (gsplat's `pause_refine_after_reset`, which suggests
+    the number of training images). 0: refine on schedule."""
     percent_dense: float = 0.01
     """Gaussians larger than this fraction of the scene extent are split, smaller cloned."""
     split_children: int = 2
@@ -81,6 +86,10 @@ class DensifyConfig:
         if self.importance_views < 0:
             raise ConfigError(
                 f"--densify.importance-views must be ≥ 0, got {self.importance_views}"
+            )
+        if self.pause_after_reset < 0:
+            raise ConfigError(
+                f"--densify.pause-after-reset must be ≥ 0, got {self.pause_after_reset}"
             )
 
 

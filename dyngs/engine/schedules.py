@@ -111,7 +111,17 @@ def is_refine_step(config: TrainConfig, step: int) -> bool:
     """Whether Gaussians are cloned, split and pruned after `step` steps."""
     d = config.densify
     within = d.refine_start <= position(config, step) <= refine_stop(config)
-    return within and step % d.refine_every == 0 and step > 0
+    return within and step % d.refine_every == 0 and step > 0 and not _paused(config, step)
+
+
+def _paused(config: TrainConfig, step: int) -> bool:
+    """Whether `step` falls within `--densify.pause-after-reset` steps after a reset (the
+    refinement at a reset step itself comes before its reset, and is not paused)."""
+    every, pause = config.densify.reset_opacity_every, config.densify.pause_after_reset
+    if every <= 0 or pause <= 0:
+        return False
+    last = step // every * every
+    return 0 < step - last <= pause and is_reset_step(config, last)
 
 
 def is_filter_step(config: TrainConfig, step: int) -> bool:

@@ -84,9 +84,27 @@ def test_budget_grows_on_a_schedule() -> None:
     assert schedules.budget_at(unbounded, 10) > 10**12
 
 
+def test_refinements_pause_after_each_reset() -> None:
+    def refining(pause: int) -> list[int]:
+        densify = DensifyConfig(refine_start=100, refine_every=100, refine_stop=0.5,
+                                reset_opacity_every=1000, pause_after_reset=pause)  # fmt: skip
+        config = tiny_config(max_iters=5000, densify=densify)
+        return [s for s in range(5001) if schedules.is_refine_step(config, s)]
+
+    on_schedule = list(range(100, 2501, 100))
+    assert refining(0) == on_schedule
+    # The refinement at a reset step comes before its reset and stays; the two after each
+    # reset within refine_stop (1 000 and 2 000) are skipped, and none after 2 500.
+    paused = [s for s in on_schedule if s not in (1100, 1200, 2100, 2200)]
+    assert refining(200) == paused
+    assert refining(250) == paused
+
+
 def test_importance_views_must_not_be_negative() -> None:
     with pytest.raises(ConfigError, match="importance-views must be ≥ 0"):
         DensifyConfig(importance_views=-1)
+    with pytest.raises(ConfigError, match="pause-after-reset must be ≥ 0"):
+        DensifyConfig(pause_after_reset=-1)
 
 
 def test_absgrad_accumulates_the_absolute_gradient_and_meets_its_own_threshold(
