@@ -78,8 +78,8 @@ def _backward_chunk(parts: tuple, upstream, grads: tuple, first: int, last: int)
 def _backward_rows(p0, p1, p2, p3, p4, p5, upstream, g0, g1, g2, g3, g4, g5, first, last):  # type: ignore[no-untyped-def]  # pragma: no cover
     """One scale's rows first … last. Its own function, with the arrays as arguments, so
     that they can be marked as never overlapping: taken from tuples, LLVM had to assume
-    that each of the six stores might change the planes it reads next, and left the loop
-    scalar (2-4× slower on the demo's shapes)."""
+    that each of the six stores might change the planes it reads next, and the loop ran
+    2-4× slower on the demo's shapes (docs/TRAINING.md)."""
     for i in range(first, last):
         for f in range(p0.shape[1]):
             r1 = p0[i, f] * p1[i, f]
