@@ -25,14 +25,37 @@ from dyngs.errors import UserError
 
 def machine_info(threads: int | None = None) -> dict[str, Any]:
     """What a benchmark ran on, for its results file: platform, processor (the machine
-    type where the OS names none), PyTorch version and CPU threads (`threads`, else
-    PyTorch's current count)."""
+    type where the OS names none), the CPU's model as Linux names it, the vector
+    instructions PyTorch uses, PyTorch version and CPU threads (`threads`, else PyTorch's
+    current count).
+
+    Two machines that both called themselves "AMD EPYC" ran the same code 1.8× apart, and
+    trained the same commit and seed to different digits in some runs (docs/TRAINING.md):
+    the model and the instruction set say which machine a figure belongs to."""
     return {
         "platform": platform.platform(),
         "processor": platform.processor() or platform.machine(),
+        "cpu": cpu_model(),
+        "cpu_capability": torch.backends.cpu.get_cpu_capability(),
         "torch": torch.__version__,
         "threads": threads or torch.get_num_threads(),
     }
+
+
+def cpu_model(cpuinfo: Path = Path("/proc/cpuinfo")) -> str:
+    """The first CPU's "model name, family F model M" from Linux's cpuinfo; "" elsewhere."""
+    try:
+        text = cpuinfo.read_text()
+    except OSError:
+        return ""
+    fields: dict[str, str] = {}
+    for line in text.splitlines():
+        key, _, value = line.partition(":")
+        fields.setdefault(key.strip(), value.strip())
+    name = fields.get("model name", "")
+    if "cpu family" in fields and "model" in fields:
+        name += f", family {fields['cpu family']} model {fields['model']}"
+    return name
 
 
 def source_commit(root: Path) -> str:

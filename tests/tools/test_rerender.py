@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from dyngs.tools.common import machine_info
+from dyngs.tools.common import cpu_model, machine_info
 from tests.tools.conftest import BENCHMARKS, load_benchmark
 
 ROOT = BENCHMARKS.parent
@@ -61,3 +61,14 @@ def test_machine_info_names_the_processor_and_the_threads() -> None:
     info = machine_info(3)
     assert info["threads"] == 3 and info["processor"] and info["torch"] and info["platform"]
     assert machine_info()["threads"] == torch.get_num_threads()
+    assert info["cpu_capability"] == torch.backends.cpu.get_cpu_capability()
+
+
+def test_the_cpu_model_is_read_from_cpuinfo(tmp_path: Path) -> None:
+    cpuinfo = tmp_path / "cpuinfo"
+    cpuinfo.write_text(
+        "processor\t: 0\nvendor_id\t: AuthenticAMD\ncpu family\t: 26\nmodel\t\t: 2\n"
+        "model name\t: AMD EPYC\n\nprocessor\t: 1\ncpu family\t: 25\nmodel\t\t: 1\n"
+    )
+    assert cpu_model(cpuinfo) == "AMD EPYC, family 26 model 2"  # the first CPU's
+    assert cpu_model(tmp_path / "missing") == ""
