@@ -52,6 +52,18 @@ def run_benchmark_main(
         torch.set_num_threads(threads)
 
 
+def modules_checkout(modules: list[str], folder: Path) -> Path:
+    """`folder` made a stand-in for another checkout holding this one's `modules` (dotted
+    names), for the A/B scripts' --before: the copies those scripts keep for numba's
+    cache then land there, not in the source tree."""
+    root = BENCHMARKS.parent
+    for name in modules:
+        source = Path(*name.split(".")).with_suffix(".py")
+        (folder / source).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy(root / source, folder / source)
+    return folder
+
+
 @pytest.fixture(scope="session")
 def tiny_data() -> Path:
     return demo_path(TINY_SCENE)

@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from dyngs.fields import hexplane
-from tests.tools.conftest import load_benchmark, run_benchmark_main
+from tests.tools.conftest import load_benchmark, modules_checkout, run_benchmark_main
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -52,7 +52,9 @@ def test_both_ways_are_timed_and_the_field_restored(
 ) -> None:
     sample_group, compiled_products = hexplane.sample_group, hexplane.compiled_products
     output = tmp_path / "ab.json"
-    argv = ["--before", str(ROOT), "--at", "2", "--steps", "2", "--threads", "1",
+    modules = [f"dyngs.fields.{name}" for name in ab.MODULES]
+    before = modules_checkout(modules, tmp_path / "before")
+    argv = ["--before", str(before), "--at", "2", "--steps", "2", "--threads", "1",
             "--output", str(output), "--", "hexplane-4dgs", "--data", "demo"]  # fmt: skip
     run_benchmark_main(ab, argv, monkeypatch)
     assert hexplane.sample_group is sample_group
@@ -60,3 +62,4 @@ def test_both_ways_are_timed_and_the_field_restored(
     report = json.loads(output.read_text())
     assert report["at"] == 2 and report["pairs"] == 2
     assert report["step_ms_median"]["before"] > 0 and report["step_ms_median"]["this"] > 0
+    assert (before / ".ab_step" / "before_dyngs_fields_hexplane.py").exists()

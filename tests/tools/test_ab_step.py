@@ -5,7 +5,6 @@ and the run leaves this checkout's code as it found it."""
 from __future__ import annotations
 
 import json
-import shutil
 import sys
 from pathlib import Path
 from types import ModuleType
@@ -15,7 +14,7 @@ import torch
 
 from dyngs import model
 from dyngs.losses import ssim_kernels
-from tests.tools.conftest import load_benchmark, run_benchmark_main
+from tests.tools.conftest import load_benchmark, modules_checkout, run_benchmark_main
 
 ROOT = Path(__file__).resolve().parents[2]
 PHOTOMETRIC = "dyngs.losses.photometric"
@@ -93,13 +92,7 @@ def test_both_ways_are_timed_and_this_checkouts_code_restored(
     photometric = sys.modules[PHOTOMETRIC]
     ssim_map, at = photometric.ssim_map, model.DynamicGaussians.__dict__["at"]
     output = tmp_path / "ab.json"
-    # --before is a folder of this checkout's three modules, so that the copies the run
-    # keeps for numba's cache land there and not in the source tree.
-    before = tmp_path / "before"
-    for name in MODULES:
-        source = Path(*name.split(".")).with_suffix(".py")
-        (before / source).parent.mkdir(parents=True, exist_ok=True)
-        shutil.copy(ROOT / source, before / source)
+    before = modules_checkout(MODULES, tmp_path / "before")
     argv = ["--before", str(before), "--swap", f"{PHOTOMETRIC}:ssim_map",
             "--swap", "dyngs.model:DynamicGaussians.at", "--with", "dyngs.losses.ssim_kernels",
             "--at", "2", "--steps", "2", "--threads", "1", "--output", str(output),
