@@ -27,8 +27,9 @@ from torch import Tensor
 from dyngs.compiled import numba_available, run_kernel, thread_count
 
 BLOCK = 8
-"""Channels a compiled job takes (`sampler_kernels`): eight float32 values, one 256-bit
-vector. Defined here so that deciding the path needs no numba import."""
+"""The compiled path's unit of channels: the channel count must be a multiple of it, and a
+plane job of the backward takes this many or twice as many (`sampler_kernels.plane_block`).
+Defined here so that deciding the path needs no numba import."""
 
 
 def reference_sample(
@@ -130,7 +131,8 @@ class _SampleGroup(torch.autograd.Function):
         scales = np.array([(width - 1) / 2, (height - 1) / 2], dtype=kind)
         run_kernel(sampler_kernels.sample_backward, thread_count(None), str(values.dtype),
                    values.numpy(), nodes.numpy(), fractions.numpy(), kind(1.0), scales,
-                   upstream.numpy(), grads.numpy(), per_plane.numpy())  # fmt: skip
+                   upstream.numpy(), sampler_kernels.plane_block(channels), grads.numpy(),
+                   per_plane.numpy())  # fmt: skip
         coords_grad = None
         if ctx.needs_input_grad[1]:
             # Each plane's two columns, in the order the reference's index_select backward

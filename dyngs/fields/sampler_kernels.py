@@ -16,12 +16,19 @@ apart. Here:
 - `sample_forward` is one job per (plane, run of CHUNK points): each point reads its
   four corners as runs of C values, which LLVM vectorises, and writes its C samples side
   by side, [G, N, C] (the layout the compiled products read);
-- `sample_backward` has two kinds of job. One per (plane, block of B channels) adds each
-  point's upstream gradient into that block's four corners, in a private [H, W, B]
-  buffer, point by point in order. One per (plane, run of CHUNK points) forms each
-  point's gradient on its two coordinates, a sum over the C channels kept in B lanes and
-  added in a fixed tree at the end, so that LLVM can vectorise it without reordering
-  floating-point sums.
+- `sample_backward` has two kinds of job. One per (plane, block of channels) adds each
+  point's upstream gradient into that block's four corners, in a private [H, W, block]
+  buffer, point by point in order: the same digits at any block size, which only shares
+  the work (`plane_block`). One per (plane, run of CHUNK points) forms each point's
+  gradient on its two coordinates, a sum over the C channels.
+Loops over a block's channels run to a length known only when the kernel runs: numba
+leaves LLVM's SLP vectoriser off (numba PR #8852, after miscompilations), and its loop
+vectoriser leaves a loop of a constant 8 iterations scalar (measured: a third of the
+speed). The coordinates' channel sum is compiled with `fastmath={"reassoc"}` alone, so
+that LLVM may add it in vector lanes (3.3× faster than the fixed lanes and tree it
+replaced): the order follows the machine's vector width, so the last bits may differ
+between machines (as PyTorch's own kernels' do), never between runs or thread counts on
+one. No other fast-math assumption is made: NaN and infinity keep their meaning.
 Every job writes its own part of every output, in an order that does not depend on how
 jobs fall to threads, so the results are the same at every thread count.
 
@@ -46,7 +53,19 @@ the split changes only how the work is shared, never a digit."""
 
 _NOALIAS = noalias_option()
 
-assert BLOCK == 8, "_tree adds eight lanes"
+WIDE_BLOCK = 16
+"""Channels a plane job takes where the channels are a multiple of it and more than it
+(`plane_block`)."""
+
+
+def plane_block(channels: int) -> int:
+    """The channels one plane job of `sample_backward` takes: WIDE_BLOCK where that leaves
+    at least two jobs a plane, else BLOCK. On the demo's 32 channels 16 ran the planes'
+    half 1.1-1.3× faster than 8; on 16 channels (three or fewer jobs for two threads) 8
+    was faster. The digits are the same either way."""
+    if channels % WIDE_BLOCK == 0 and channels > WIDE_BLOCK:
+        return WIDE_BLOCK
+    return BLOCK
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -130,19 +149,20 @@ def _forward_chunk(values, nodes, fractions, shift, one, out, first, last):  # t
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def sample_backward(values, nodes, fractions, one, scales, upstream, grads, coords):  # type: ignore[no-untyped-def]  # pragma: no cover
+def sample_backward(values, nodes, fractions, one, scales, upstream, block, grads, coords):  # type: ignore[no-untyped-def]  # pragma: no cover
     """From upstream [G, N, C], the gradient of `sample_forward`'s out: grads [G, C, H, W]
-    for the planes and coords [N, G, 2], each plane's gradient on its two coordinate
-    columns at every point (none when coords holds no points); scales = ((W − 1)/2,
-    (H − 1)/2), the grid's nodes per unit of coordinate."""
+    for the planes, `block` channels a job (a divisor of C, `plane_block`), and coords
+    [N, G, 2], each plane's gradient on its two coordinate columns at every point (none
+    when coords holds no points); scales = ((W − 1)/2, (H − 1)/2), the grid's nodes per
+    unit of coordinate."""
     groups, height, width, channels = values.shape
-    blocks = channels // BLOCK
+    blocks = channels // block
     # Two loops, so that each shares its own kind of job evenly among the threads.
     for job in prange(groups * blocks):
-        g, c0 = job // blocks, job % blocks * BLOCK
-        sums = np.zeros((height, width, BLOCK), values.dtype)
+        g, c0 = job // blocks, job % blocks * block
+        sums = np.zeros((height, width, block), values.dtype)
         _plane_job(nodes[g], fractions[g], one, upstream[g], c0, sums)
-        for c in range(BLOCK):
+        for c in range(block):
             grad = grads[g, c0 + c]
             for h in range(height):
                 for w in range(width):
@@ -151,60 +171,48 @@ def sample_backward(values, nodes, fractions, one, scales, upstream, grads, coor
     chunks = (n + CHUNK - 1) // CHUNK
     for job in prange(groups * chunks):
         g, first = job // chunks, job % chunks * CHUNK
-        terms = np.empty((2, channels), values.dtype)
         _coordinate_chunk(values[g], nodes[g], fractions[g], one, scales, upstream[g],
-                          coords[:, g], first, min(first + CHUNK, n), terms)  # fmt: skip
+                          coords[:, g], first, min(first + CHUNK, n))  # fmt: skip
 
 
 @njit(cache=True, nogil=True, **_NOALIAS)
 def _plane_job(nodes, fractions, one, upstream, c0, sums):  # type: ignore[no-untyped-def]  # pragma: no cover
-    """Add every point's upstream gradient in channels c0 … c0 + B into its four corners of
-    sums [H, W, B], point by point in order."""
+    """Add every point's upstream gradient in channels c0 … c0 + block into its four
+    corners of sums [H, W, block], point by point in order."""
+    block = sums.shape[2]
     for n in range(nodes.shape[0]):
         x0, x1, y0, y1 = nodes[n, 0], nodes[n, 1], nodes[n, 2], nodes[n, 3]
         _, _, _, _, nw, ne, sw, se = _weights(fractions, n, one)
-        up = upstream[n, c0 : c0 + BLOCK]
+        up = upstream[n, c0 : c0 + block]
         # One loop a corner: at the last node the corners coincide (x1 = x0), so a
         # single loop adding to all four could not be vectorised.
-        for c in range(BLOCK):
-            sums[y0, x0, c] += up[c] * nw
-        for c in range(BLOCK):
-            sums[y0, x1, c] += up[c] * ne
-        for c in range(BLOCK):
-            sums[y1, x0, c] += up[c] * sw
-        for c in range(BLOCK):
-            sums[y1, x1, c] += up[c] * se
-
-
-@njit(cache=True, nogil=True, **_NOALIAS)
-def _coordinate_chunk(values, nodes, fractions, one, scales, upstream, coords, first, last, terms):  # type: ignore[no-untyped-def]  # pragma: no cover
-    """coords[n] for points first … last of one plane: Σ_c upstream[n, c] times the
-    bilinear sample's derivative along each axis. The C terms are formed side by side,
-    then channel c is added into lane c mod B in channel order and the B lanes in a
-    fixed tree: an order LLVM can vectorise without reordering a floating-point sum.
-    terms [2, C] is scratch."""
-    channels = values.shape[2]
-    tx, ty = terms[0], terms[1]
-    for n in range(first, last):
-        x0, x1, y0, y1 = nodes[n, 0], nodes[n, 1], nodes[n, 2], nodes[n, 3]
-        fx, fy, gx, gy, _, _, _, _ = _weights(fractions, n, one)
-        for c in range(channels):
-            v00, v01 = values[y0, x0, c], values[y0, x1, c]
-            v10, v11 = values[y1, x0, c], values[y1, x1, c]
-            u = upstream[n, c]
-            tx[c] = u * ((v01 - v00) * gy + (v11 - v10) * fy)
-            ty[c] = u * ((v10 - v00) * gx + (v11 - v01) * fx)
-        for c0 in range(BLOCK, channels, BLOCK):
-            for lane in range(BLOCK):
-                tx[lane] += tx[c0 + lane]
-                ty[lane] += ty[c0 + lane]
-        coords[n, 0] = _tree(tx) * scales[0] * fractions[n, 2]
-        coords[n, 1] = _tree(ty) * scales[1] * fractions[n, 3]
+        _add_scaled(sums[y0, x0], up, nw)
+        _add_scaled(sums[y0, x1], up, ne)
+        _add_scaled(sums[y1, x0], up, sw)
+        _add_scaled(sums[y1, x1], up, se)
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _tree(lanes):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
-    """The first B = 8 lanes summed pairwise, in one fixed order."""
-    return ((lanes[0] + lanes[1]) + (lanes[2] + lanes[3])) + (
-        (lanes[4] + lanes[5]) + (lanes[6] + lanes[7])
-    )
+def _add_scaled(into, up, weight):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+    """into += up · weight, elementwise."""
+    for c in range(into.shape[0]):
+        into[c] += up[c] * weight
+
+
+@njit(cache=True, nogil=True, fastmath={"reassoc"}, **_NOALIAS)
+def _coordinate_chunk(values, nodes, fractions, one, scales, upstream, coords, first, last):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """coords[n] for points first … last of one plane: Σ_c upstream[n, c] times the
+    bilinear sample's derivative along each axis, the sum in the order LLVM vectorises
+    it (the module's docstring says why)."""
+    for n in range(first, last):
+        x0, x1, y0, y1 = nodes[n, 0], nodes[n, 1], nodes[n, 2], nodes[n, 3]
+        fx, fy, gx, gy, _, _, _, _ = _weights(fractions, n, one)
+        v00, v01, v10, v11 = values[y0, x0], values[y0, x1], values[y1, x0], values[y1, x1]
+        u = upstream[n]
+        along_x = one - one
+        along_y = along_x
+        for c in range(u.shape[0]):
+            along_x += u[c] * ((v01[c] - v00[c]) * gy + (v11[c] - v10[c]) * fy)
+            along_y += u[c] * ((v10[c] - v00[c]) * gx + (v11[c] - v01[c]) * fx)
+        coords[n, 0] = along_x * scales[0] * fractions[n, 2]
+        coords[n, 1] = along_y * scales[1] * fractions[n, 3]

@@ -5,6 +5,7 @@ planes (shift 1), at any thread count, and inside the field."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 from torch import Tensor
@@ -133,6 +134,29 @@ def test_the_planes_gradient_alone_is_the_same_without_the_coordinates() -> None
     assert torch.equal(p.grad, with_coords)
     _, reference, _ = _run(ps.reference_sample, planes, coords, TIME_COLUMNS, 1.0, upstream)
     _close(p.grad, reference, 1e-12)
+
+
+def test_the_plane_jobs_block_changes_no_digit() -> None:
+    """Each plane node adds its points in the same order at any block of channels a job
+    takes: 8 or 16 give the same gradient to the bit (`sampler_kernels.plane_block` picks
+    between them for speed alone)."""
+    from dyngs.fields import sampler_kernels as sk
+
+    planes, coords, upstream = _case((3, 32, 13, 35), 2000, torch.float32, seed=6)
+    values = planes.permute(0, 2, 3, 1).contiguous()
+    nodes, fractions = ps._placed(planes, coords, COLUMNS)
+    scales = np.array([(35 - 1) / 2, (13 - 1) / 2], dtype=np.float32)
+    grads = []
+    for block in (ps.BLOCK, sk.WIDE_BLOCK):
+        grad = torch.full_like(planes, float("nan"))
+        coords_grad = torch.empty(0, 3, 2)
+        sk.sample_backward(values.numpy(), nodes.numpy(), fractions.numpy(), np.float32(1),
+                           scales, upstream.squeeze(2).transpose(1, 2).contiguous().numpy(),
+                           block, grad.numpy(), coords_grad.numpy())  # fmt: skip
+        grads.append(grad)
+    assert bool(grads[0].isfinite().all())  # every entry written
+    assert torch.equal(grads[0], grads[1])
+    assert [sk.plane_block(c) for c in (8, 16, 24, 32, 48, 64)] == [8, 8, 8, 16, 16, 16]
 
 
 def test_channels_that_are_not_a_block_use_the_reference() -> None:
