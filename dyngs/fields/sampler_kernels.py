@@ -10,17 +10,20 @@ backward, adds each point's gradient into the plane one channel at a time, H·W 
 apart. Here:
 - `placements` finds, once per plane and point, the four corner nodes and the two
   fractions (with every job placing each point again, the field ran only 1.1-1.2× faster
-  than with grid_sample; placed once, 1.5×);
-- `planes_channels_last` copies the planes, less the shift, once a forward, as
+  than with grid_sample; placed once, 1.5×), and each plane's span: the rectangle of
+  nodes its points read (a time plane's two rows of 134 on hfu-3cam, where a step
+  draws one time);
+- `planes_channels_last` copies each plane's span, less the shift, once a forward, as
   [G, H, W, C], so that a node's C channels are adjacent; the backward reads the copy;
 - `sample_forward` is one job per (plane, run of CHUNK points): each point reads its
   four corners as runs of C values, which LLVM vectorises, and writes its C samples side
   by side, [G, N, C] (the layout the compiled products read);
 - `sample_backward` has two kinds of job. One per (plane, block of channels) adds each
-  point's upstream gradient into that block's four corners, in a private [H, W, block]
-  buffer, point by point in order: the same digits at any block size, which only shares
-  the work (`plane_block`). One per (plane, run of CHUNK points) forms each point's
-  gradient on its two coordinates, a sum over the C channels.
+  point's upstream gradient into that block's four corners, in a private buffer the
+  size of the plane's span, point by point in order, and writes zeros outside the span:
+  the same digits at any block size, which only shares the work (`plane_block`). One
+  per (plane, run of CHUNK points) forms each point's gradient on its two coordinates,
+  a sum over the C channels.
 Loops over a block's channels run to a length known only when the kernel runs: numba
 leaves LLVM's SLP vectoriser off (numba PR #8852, after miscompilations), and its loop
 vectoriser leaves a loop of a constant 8 iterations scalar (measured: a third of the
@@ -87,29 +90,43 @@ def _place(x, one, half, last):  # type: ignore[no-untyped-def]  # pragma: no co
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def placements(coords, columns, one, half, lasts, nodes, fractions):  # type: ignore[no-untyped-def]  # pragma: no cover
+def placements(coords, columns, one, half, lasts, nodes, fractions, spans):  # type: ignore[no-untyped-def]  # pragma: no cover
     """For each plane g and point n: nodes[g, n] = (x0, x1, y0, y1) and fractions[g, n] =
-    (fx, fy, x free, y free), from columns (a_g, b_g) of coords; lasts = (W − 1, H − 1)."""
+    (fx, fy, x free, y free), from columns (a_g, b_g) of coords; lasts = (W − 1, H − 1).
+    spans[g] = (first x, last x, first y, last y): the nodes any point of plane g reads,
+    (0, −1, 0, −1) when there are no points."""
     groups, n = nodes.shape[0], coords.shape[0]
     for g in prange(groups):
         a, b = columns[2 * g], columns[2 * g + 1]
+        x_first, x_last = int(lasts[0]), 0
+        y_first, y_last = int(lasts[1]), 0
         for i in range(n):
             x0, x1, fx, x_free = _place(coords[i, a], one, half, lasts[0])
             y0, y1, fy, y_free = _place(coords[i, b], one, half, lasts[1])
             nodes[g, i, 0], nodes[g, i, 1], nodes[g, i, 2], nodes[g, i, 3] = x0, x1, y0, y1
             fractions[g, i, 0], fractions[g, i, 1] = fx, fy
             fractions[g, i, 2], fractions[g, i, 3] = x_free, y_free
+            x_first, x_last = min(x_first, x0), max(x_last, x1)
+            y_first, y_last = min(y_first, y0), max(y_last, y1)
+        if n == 0:
+            x_first, x_last, y_first, y_last = 0, -1, 0, -1
+        spans[g, 0], spans[g, 1], spans[g, 2], spans[g, 3] = x_first, x_last, y_first, y_last
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def planes_channels_last(planes, shift, values):  # type: ignore[no-untyped-def]  # pragma: no cover
-    """values[g, h, w, c] = planes[g, c, h, w] − shift. One job per (plane, row)."""
-    groups, channels, height, width = planes.shape
+def planes_channels_last(planes, shift, spans, values):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """values[g, h, w, c] = planes[g, c, h, w] − shift inside plane g's span (`placements`),
+    the only nodes the samples read; values outside it are left as they are. One job per
+    (plane, row)."""
+    groups, channels, height = planes.shape[:3]
     for job in prange(groups * height):
         g, h = job // height, job % height
+        if h < spans[g, 2] or h > spans[g, 3]:
+            continue
+        first, last = spans[g, 0], spans[g, 1] + 1
         for c in range(channels):
             row = planes[g, c, h]
-            for w in range(width):
+            for w in range(first, last):
                 values[g, h, w, c] = row[w] - shift
 
 
@@ -149,24 +166,33 @@ def _forward_chunk(values, nodes, fractions, shift, one, out, first, last):  # t
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def sample_backward(values, nodes, fractions, one, scales, upstream, block, grads, coords):  # type: ignore[no-untyped-def]  # pragma: no cover
+def sample_backward(values, nodes, fractions, one, scales, upstream, block, spans, grads, coords):  # type: ignore[no-untyped-def]  # pragma: no cover
     """From upstream [G, N, C], the gradient of `sample_forward`'s out: grads [G, C, H, W]
-    for the planes, `block` channels a job (a divisor of C, `plane_block`), and coords
-    [N, G, 2], each plane's gradient on its two coordinate columns at every point (none
-    when coords holds no points); scales = ((W − 1)/2, (H − 1)/2), the grid's nodes per
-    unit of coordinate."""
-    groups, height, width, channels = values.shape
+    for the planes, `block` channels a job (a divisor of C, `plane_block`), zero outside
+    each plane's span (`placements`), and coords [N, G, 2], each plane's gradient on its
+    two coordinate columns at every point (none when coords holds no points); scales =
+    ((W − 1)/2, (H − 1)/2), the grid's nodes per unit of coordinate."""
+    groups, height, channels = values.shape[0], values.shape[1], values.shape[3]
     blocks = channels // block
     # Two loops, so that each shares its own kind of job evenly among the threads.
     for job in prange(groups * blocks):
         g, c0 = job // blocks, job % blocks * block
-        sums = np.zeros((height, width, block), values.dtype)
-        _plane_job(nodes[g], fractions[g], one, upstream[g], c0, sums)
+        x_first, x_last, y_first, y_last = spans[g, 0], spans[g, 1], spans[g, 2], spans[g, 3]
+        sums = np.zeros((y_last + 1 - y_first, x_last + 1 - x_first, block), values.dtype)
+        _plane_job(nodes[g], fractions[g], one, upstream[g], c0, x_first, y_first, sums)
+        zero = one - one
         for c in range(block):
             grad = grads[g, c0 + c]
             for h in range(height):
-                for w in range(width):
-                    grad[h, w] = sums[h, w, c]
+                row = grad[h]
+                if h < y_first or h > y_last:
+                    row[:] = zero
+                    continue
+                row[:x_first] = zero
+                row[x_last + 1 :] = zero
+                kept = sums[h - y_first]
+                for w in range(x_first, x_last + 1):
+                    row[w] = kept[w - x_first, c]
     n = coords.shape[0]
     chunks = (n + CHUNK - 1) // CHUNK
     for job in prange(groups * chunks):
@@ -176,12 +202,14 @@ def sample_backward(values, nodes, fractions, one, scales, upstream, block, grad
 
 
 @njit(cache=True, nogil=True, **_NOALIAS)
-def _plane_job(nodes, fractions, one, upstream, c0, sums):  # type: ignore[no-untyped-def]  # pragma: no cover
+def _plane_job(nodes, fractions, one, upstream, c0, x_first, y_first, sums):  # type: ignore[no-untyped-def]  # pragma: no cover
     """Add every point's upstream gradient in channels c0 … c0 + block into its four
-    corners of sums [H, W, block], point by point in order."""
+    corners of sums [span's rows, span's columns, block], whose first node is (y_first,
+    x_first), point by point in order."""
     block = sums.shape[2]
     for n in range(nodes.shape[0]):
-        x0, x1, y0, y1 = nodes[n, 0], nodes[n, 1], nodes[n, 2], nodes[n, 3]
+        x0, x1 = nodes[n, 0] - x_first, nodes[n, 1] - x_first
+        y0, y1 = nodes[n, 2] - y_first, nodes[n, 3] - y_first
         _, _, _, _, nw, ne, sw, se = _weights(fractions, n, one)
         up = upstream[n, c0 : c0 + block]
         # One loop a corner: at the last node the corners coincide (x1 = x0), so a

@@ -144,7 +144,7 @@ def test_the_plane_jobs_block_changes_no_digit() -> None:
 
     planes, coords, upstream = _case((3, 32, 13, 35), 2000, torch.float32, seed=6)
     values = planes.permute(0, 2, 3, 1).contiguous()
-    nodes, fractions = ps._placed(planes, coords, COLUMNS)
+    nodes, fractions, spans = ps._placed(planes, coords, COLUMNS)
     scales = np.array([(35 - 1) / 2, (13 - 1) / 2], dtype=np.float32)
     grads = []
     for block in (ps.BLOCK, sk.WIDE_BLOCK):
@@ -152,11 +152,41 @@ def test_the_plane_jobs_block_changes_no_digit() -> None:
         coords_grad = torch.empty(0, 3, 2)
         sk.sample_backward(values.numpy(), nodes.numpy(), fractions.numpy(), np.float32(1),
                            scales, upstream.squeeze(2).transpose(1, 2).contiguous().numpy(),
-                           block, grad.numpy(), coords_grad.numpy())  # fmt: skip
+                           block, spans.numpy(), grad.numpy(), coords_grad.numpy())  # fmt: skip
         grads.append(grad)
     assert bool(grads[0].isfinite().all())  # every entry written
     assert torch.equal(grads[0], grads[1])
     assert [sk.plane_block(c) for c in (8, 16, 24, 32, 48, 64)] == [8, 8, 8, 16, 16, 16]
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_points_in_a_corner_of_the_planes(dtype: torch.dtype) -> None:
+    """Points that read a few nodes of large planes (a real capture's moving part): the
+    compiled path copies and adds only the span of nodes they read, and the planes'
+    gradient is zero everywhere else, as the reference's is. One span reaches the last
+    node (x1 = x0 there), one the first."""
+    planes, coords, upstream = _case((3, 16, 40, 50), 300, dtype, seed=7)
+    generator = torch.Generator().manual_seed(8)
+    coords = 0.2 * torch.rand(300, 4, generator=generator, dtype=dtype) + 0.5
+    coords[:5, 0] = 1.0  # the last node along x of the planes reading column 0
+    coords[5:9, 2] = -1.0  # the first node of those reading column 2
+    fast = _run(ps.sample_group, planes, coords, COLUMNS, 0.0, upstream)
+    slow = _run(ps.reference_sample, planes, coords, COLUMNS, 0.0, upstream)
+    for a, b in zip(fast, slow, strict=True):
+        _close(a, b, 1e-12 if dtype == torch.float64 else 1e-5)
+    grad = fast[1]
+    assert bool((grad[0, :, :20] == 0).all())  # rows no point of plane 0 reads
+    assert bool((grad[0, :, :, :30] == 0).all())  # columns no point of plane 0 reads
+    assert bool((grad[1, :, 0] != 0).any())  # the first row, which plane 1 reads
+    assert bool((grad[0, :, :, -1] != 0).any())  # the last column, which plane 0 reads
+    _, _, spans = ps._placed(planes, coords, COLUMNS)
+    assert spans[0, 1] == 49 and spans[1, 2] == 0  # the last x node, the first y node
+
+
+def test_the_span_of_no_points_is_empty() -> None:
+    planes, coords, _ = _case((3, 8, 5, 5), 0, torch.float32, seed=0)
+    _, _, spans = ps._placed(planes, coords, COLUMNS)
+    assert spans.tolist() == [[0, -1, 0, -1]] * 3
 
 
 def test_channels_that_are_not_a_block_use_the_reference() -> None:
