@@ -72,21 +72,25 @@ def sample_group(
     return reference_sample(planes, coords, columns, shift)
 
 
-def _placed(planes: Tensor, coords: Tensor, columns: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """Each plane's corner nodes and fractions for every point, and the span of nodes the
-    points read on each plane (`sampler_kernels.placements`)."""
+def _placed(
+    planes: Tensor, coords: Tensor, columns: Tensor
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Each plane's corner nodes and fractions for every point, the span of nodes the
+    points read on each plane and how many, and which they are
+    (`sampler_kernels.placements`)."""
     from dyngs.fields import sampler_kernels
 
     groups, _, height, width = planes.shape
     kind = _kind(planes.dtype)
     nodes = torch.empty(groups, coords.shape[0], 4, dtype=torch.int64)
     fractions = torch.empty(groups, coords.shape[0], 4, dtype=planes.dtype)
-    spans = torch.empty(groups, 4, dtype=torch.int64)
+    spans = torch.empty(groups, 5, dtype=torch.int64)
+    touched = torch.zeros(groups, height, width, dtype=torch.uint8)
     lasts = np.array([width - 1, height - 1], dtype=kind)
     run_kernel(sampler_kernels.placements, thread_count(None), str(planes.dtype),
                coords.numpy(), columns.numpy(), kind(1.0), kind(0.5), lasts, nodes.numpy(),
-               fractions.numpy(), spans.numpy())  # fmt: skip
-    return nodes, fractions, spans
+               fractions.numpy(), spans.numpy(), touched.numpy())  # fmt: skip
+    return nodes, fractions, spans, touched
 
 
 def _kind(dtype: torch.dtype) -> Any:
@@ -103,14 +107,14 @@ class _SampleGroup(torch.autograd.Function):
 
         coords = coords.detach().contiguous()
         columns = columns.detach().contiguous()
-        nodes, fractions, spans = _placed(planes, coords, columns)
+        nodes, fractions, spans, touched = _placed(planes, coords, columns)
         groups, channels, height, width = planes.shape
         kind, threads, signature = _kind(planes.dtype), thread_count(None), str(planes.dtype)
-        # The planes less the shift, channels last, within the span of nodes the points
-        # read (the rest is never read): read by the forward and the backward.
+        # The planes less the shift, channels last, at the nodes the points read (the rest
+        # is never read): read by the forward and the backward.
         values = torch.empty(groups, height, width, channels, dtype=planes.dtype)
         run_kernel(sampler_kernels.planes_channels_last, threads, signature,
-                   planes.detach().numpy(), kind(shift), spans.numpy(),
+                   planes.detach().numpy(), kind(shift), spans.numpy(), touched.numpy(),
                    values.numpy())  # fmt: skip
         out = torch.empty(groups, coords.shape[0], channels, dtype=planes.dtype)
         run_kernel(sampler_kernels.sample_forward, threads, signature, values.numpy(),

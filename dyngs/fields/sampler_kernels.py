@@ -13,8 +13,9 @@ apart. Here:
   than with grid_sample; placed once, 1.5×), and each plane's span: the rectangle of
   nodes its points read (a time plane's two rows of 134 on hfu-3cam, where a step
   draws one time);
-- `planes_channels_last` copies each plane's span, less the shift, once a forward, as
-  [G, H, W, C], so that a node's C channels are adjacent; the backward reads the copy;
+- `planes_channels_last` copies each plane's span (or, where the points read few of its
+  nodes, only those), less the shift, once a forward, as [G, H, W, C], so that a node's
+  C channels are adjacent; the backward reads the copy;
 - `sample_forward` is one job per (plane, run of CHUNK points): each point reads its
   four corners as runs of C values, which LLVM vectorises, and writes its C samples side
   by side, [G, N, C] (the layout the compiled products read);
@@ -90,16 +91,19 @@ def _place(x, one, half, last):  # type: ignore[no-untyped-def]  # pragma: no co
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def placements(coords, columns, one, half, lasts, nodes, fractions, spans):  # type: ignore[no-untyped-def]  # pragma: no cover
+def placements(coords, columns, one, half, lasts, nodes, fractions, spans, touched):  # type: ignore[no-untyped-def]  # pragma: no cover
     """For each plane g and point n: nodes[g, n] = (x0, x1, y0, y1) and fractions[g, n] =
     (fx, fy, x free, y free), from columns (a_g, b_g) of coords; lasts = (W − 1, H − 1).
-    spans[g] = (first x, last x, first y, last y): the nodes any point of plane g reads,
-    (0, −1, 0, −1) when there are no points."""
+    spans[g] = (first x, last x, first y, last y, nodes read): the rectangle of nodes
+    any point of plane g reads, (0, −1, 0, −1, 0) when there are no points, and how many
+    nodes they read; touched [G, H, W], all zero on entry, is 1 at every node read."""
     groups, n = nodes.shape[0], coords.shape[0]
     for g in prange(groups):
         a, b = columns[2 * g], columns[2 * g + 1]
         x_first, x_last = int(lasts[0]), 0
         y_first, y_last = int(lasts[1]), 0
+        read = 0
+        marks = touched[g]
         for i in range(n):
             x0, x1, fx, x_free = _place(coords[i, a], one, half, lasts[0])
             y0, y1, fy, y_free = _place(coords[i, b], one, half, lasts[1])
@@ -108,22 +112,50 @@ def placements(coords, columns, one, half, lasts, nodes, fractions, spans):  # t
             fractions[g, i, 2], fractions[g, i, 3] = x_free, y_free
             x_first, x_last = min(x_first, x0), max(x_last, x1)
             y_first, y_last = min(y_first, y0), max(y_last, y1)
+            read += _mark(marks, y0, x0) + _mark(marks, y0, x1)
+            read += _mark(marks, y1, x0) + _mark(marks, y1, x1)
         if n == 0:
             x_first, x_last, y_first, y_last = 0, -1, 0, -1
         spans[g, 0], spans[g, 1], spans[g, 2], spans[g, 3] = x_first, x_last, y_first, y_last
+        spans[g, 4] = read
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _mark(marks, y, x):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+    """Mark node (y, x) read; 1 if it was not yet, else 0."""
+    if marks[y, x]:
+        return 0
+    marks[y, x] = 1
+    return 1
+
+
+SPARSE = 4
+"""A plane whose points read fewer than 1/SPARSE of its span's nodes is copied node by
+node (`planes_channels_last`), the rest row by row."""
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def planes_channels_last(planes, shift, spans, values):  # type: ignore[no-untyped-def]  # pragma: no cover
-    """values[g, h, w, c] = planes[g, c, h, w] − shift inside plane g's span (`placements`),
-    the only nodes the samples read; values outside it are left as they are. One job per
-    (plane, row)."""
+def planes_channels_last(planes, shift, spans, touched, values):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """values[g, h, w, c] = planes[g, c, h, w] − shift at every node the points of plane g
+    read (`placements`); values elsewhere are left as they are. One job per (plane, row).
+    A row of a plane whose points read few of its span's nodes (under 1/SPARSE) copies
+    only the nodes read, a node's C channels H·W values apart; the others copy the span's
+    columns of each channel's row, which is contiguous."""
     groups, channels, height = planes.shape[:3]
     for job in prange(groups * height):
         g, h = job // height, job % height
         if h < spans[g, 2] or h > spans[g, 3]:
             continue
         first, last = spans[g, 0], spans[g, 1] + 1
+        area = (last - first) * (spans[g, 3] + 1 - spans[g, 2])
+        if spans[g, 4] * SPARSE < area:
+            marks = touched[g, h]
+            for w in range(first, last):
+                if marks[w]:
+                    node = values[g, h, w]
+                    for c in range(channels):
+                        node[c] = planes[g, c, h, w] - shift
+            continue
         for c in range(channels):
             row = planes[g, c, h]
             for w in range(first, last):

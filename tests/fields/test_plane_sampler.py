@@ -144,7 +144,7 @@ def test_the_plane_jobs_block_changes_no_digit() -> None:
 
     planes, coords, upstream = _case((3, 32, 13, 35), 2000, torch.float32, seed=6)
     values = planes.permute(0, 2, 3, 1).contiguous()
-    nodes, fractions, spans = ps._placed(planes, coords, COLUMNS)
+    nodes, fractions, spans, _ = ps._placed(planes, coords, COLUMNS)
     scales = np.array([(35 - 1) / 2, (13 - 1) / 2], dtype=np.float32)
     grads = []
     for block in (ps.BLOCK, sk.WIDE_BLOCK):
@@ -179,14 +179,22 @@ def test_points_in_a_corner_of_the_planes(dtype: torch.dtype) -> None:
     assert bool((grad[0, :, :, :30] == 0).all())  # columns no point of plane 0 reads
     assert bool((grad[1, :, 0] != 0).any())  # the first row, which plane 1 reads
     assert bool((grad[0, :, :, -1] != 0).any())  # the last column, which plane 0 reads
-    _, _, spans = ps._placed(planes, coords, COLUMNS)
+    _, _, spans, touched = ps._placed(planes, coords, COLUMNS)
     assert spans[0, 1] == 49 and spans[1, 2] == 0  # the last x node, the first y node
+    assert spans[:, 4].tolist() == touched.sum(dim=(1, 2)).tolist()  # the nodes read
+    # Both ways of copying ran: a plane whose points read few of its span's nodes, node by
+    # node, and one whose points read many, row by row.
+    from dyngs.fields.sampler_kernels import SPARSE
+
+    area = (spans[:, 1] + 1 - spans[:, 0]) * (spans[:, 3] + 1 - spans[:, 2])
+    sparse = spans[:, 4] * SPARSE < area
+    assert bool(sparse.any()) and not bool(sparse.all())
 
 
 def test_the_span_of_no_points_is_empty() -> None:
     planes, coords, _ = _case((3, 8, 5, 5), 0, torch.float32, seed=0)
-    _, _, spans = ps._placed(planes, coords, COLUMNS)
-    assert spans.tolist() == [[0, -1, 0, -1]] * 3
+    _, _, spans, touched = ps._placed(planes, coords, COLUMNS)
+    assert spans.tolist() == [[0, -1, 0, -1, 0]] * 3 and not bool(touched.any())
 
 
 def test_channels_that_are_not_a_block_use_the_reference() -> None:
