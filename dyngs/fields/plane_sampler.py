@@ -76,7 +76,7 @@ def _placed(
     planes: Tensor, coords: Tensor, columns: Tensor
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Each plane's corner nodes and fractions for every point, the span of nodes the
-    points read on each plane and how many, and which they are
+    points read on each plane and how many, and the nodes read, numbered from 1
     (`sampler_kernels.placements`)."""
     from dyngs.fields import sampler_kernels
 
@@ -85,12 +85,12 @@ def _placed(
     nodes = torch.empty(groups, coords.shape[0], 4, dtype=torch.int64)
     fractions = torch.empty(groups, coords.shape[0], 4, dtype=planes.dtype)
     spans = torch.empty(groups, 5, dtype=torch.int64)
-    touched = torch.zeros(groups, height, width, dtype=torch.uint8)
+    slots = torch.zeros(groups, height, width, dtype=torch.int32)
     lasts = np.array([width - 1, height - 1], dtype=kind)
     run_kernel(sampler_kernels.placements, thread_count(None), str(planes.dtype),
                coords.numpy(), columns.numpy(), kind(1.0), kind(0.5), lasts, nodes.numpy(),
-               fractions.numpy(), spans.numpy(), touched.numpy())  # fmt: skip
-    return nodes, fractions, spans, touched
+               fractions.numpy(), spans.numpy(), slots.numpy())  # fmt: skip
+    return nodes, fractions, spans, slots
 
 
 def _kind(dtype: torch.dtype) -> Any:
@@ -107,20 +107,20 @@ class _SampleGroup(torch.autograd.Function):
 
         coords = coords.detach().contiguous()
         columns = columns.detach().contiguous()
-        nodes, fractions, spans, touched = _placed(planes, coords, columns)
+        nodes, fractions, spans, slots = _placed(planes, coords, columns)
         groups, channels, height, width = planes.shape
         kind, threads, signature = _kind(planes.dtype), thread_count(None), str(planes.dtype)
         # The planes less the shift, channels last, at the nodes the points read (the rest
         # is never read): read by the forward and the backward.
         values = torch.empty(groups, height, width, channels, dtype=planes.dtype)
         run_kernel(sampler_kernels.planes_channels_last, threads, signature,
-                   planes.detach().numpy(), kind(shift), spans.numpy(), touched.numpy(),
+                   planes.detach().numpy(), kind(shift), spans.numpy(), slots.numpy(),
                    values.numpy())  # fmt: skip
         out = torch.empty(groups, coords.shape[0], channels, dtype=planes.dtype)
         run_kernel(sampler_kernels.sample_forward, threads, signature, values.numpy(),
                    nodes.numpy(), fractions.numpy(), kind(shift), kind(1.0),
                    out.numpy())  # fmt: skip
-        ctx.save_for_backward(values, columns, nodes, fractions, spans)
+        ctx.save_for_backward(values, columns, nodes, fractions, spans, slots)
         ctx.coords_width = coords.shape[1]
         return channels_first(out)
 
@@ -128,7 +128,7 @@ class _SampleGroup(torch.autograd.Function):
     def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
         from dyngs.fields import sampler_kernels
 
-        values, columns, nodes, fractions, spans = ctx.saved_tensors
+        values, columns, nodes, fractions, spans, slots = ctx.saved_tensors
         groups, height, width, channels = values.shape
         n = nodes.shape[1]
         upstream = channels_last(grad)
@@ -140,7 +140,7 @@ class _SampleGroup(torch.autograd.Function):
         run_kernel(sampler_kernels.sample_backward, thread_count(None), str(values.dtype),
                    values.numpy(), nodes.numpy(), fractions.numpy(), kind(1.0), scales,
                    upstream.numpy(), sampler_kernels.plane_block(channels), spans.numpy(),
-                   grads.numpy(), per_plane.numpy())  # fmt: skip
+                   slots.numpy(), grads.numpy(), per_plane.numpy())  # fmt: skip
         coords_grad = None
         if ctx.needs_input_grad[1]:
             # Each plane's two columns, in the order the reference's index_select backward

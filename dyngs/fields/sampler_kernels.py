@@ -91,19 +91,20 @@ def _place(x, one, half, last):  # type: ignore[no-untyped-def]  # pragma: no co
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def placements(coords, columns, one, half, lasts, nodes, fractions, spans, touched):  # type: ignore[no-untyped-def]  # pragma: no cover
+def placements(coords, columns, one, half, lasts, nodes, fractions, spans, slots):  # type: ignore[no-untyped-def]  # pragma: no cover
     """For each plane g and point n: nodes[g, n] = (x0, x1, y0, y1) and fractions[g, n] =
     (fx, fy, x free, y free), from columns (a_g, b_g) of coords; lasts = (W − 1, H − 1).
     spans[g] = (first x, last x, first y, last y, nodes read): the rectangle of nodes
     any point of plane g reads, (0, −1, 0, −1, 0) when there are no points, and how many
-    nodes they read; touched [G, H, W], all zero on entry, is 1 at every node read."""
+    nodes they read; slots [G, H, W], all zero on entry, numbers the nodes read 1, 2, …
+    in the order the points first read them."""
     groups, n = nodes.shape[0], coords.shape[0]
     for g in prange(groups):
         a, b = columns[2 * g], columns[2 * g + 1]
         x_first, x_last = int(lasts[0]), 0
         y_first, y_last = int(lasts[1]), 0
         read = 0
-        marks = touched[g]
+        marks = slots[g]
         for i in range(n):
             x0, x1, fx, x_free = _place(coords[i, a], one, half, lasts[0])
             y0, y1, fy, y_free = _place(coords[i, b], one, half, lasts[1])
@@ -112,8 +113,10 @@ def placements(coords, columns, one, half, lasts, nodes, fractions, spans, touch
             fractions[g, i, 2], fractions[g, i, 3] = x_free, y_free
             x_first, x_last = min(x_first, x0), max(x_last, x1)
             y_first, y_last = min(y_first, y0), max(y_last, y1)
-            read += _mark(marks, y0, x0) + _mark(marks, y0, x1)
-            read += _mark(marks, y1, x0) + _mark(marks, y1, x1)
+            read = _mark(marks, y0, x0, read)
+            read = _mark(marks, y0, x1, read)
+            read = _mark(marks, y1, x0, read)
+            read = _mark(marks, y1, x1, read)
         if n == 0:
             x_first, x_last, y_first, y_last = 0, -1, 0, -1
         spans[g, 0], spans[g, 1], spans[g, 2], spans[g, 3] = x_first, x_last, y_first, y_last
@@ -121,21 +124,28 @@ def placements(coords, columns, one, half, lasts, nodes, fractions, spans, touch
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _mark(marks, y, x):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
-    """Mark node (y, x) read; 1 if it was not yet, else 0."""
-    if marks[y, x]:
-        return 0
-    marks[y, x] = 1
-    return 1
+def _mark(marks, y, x, read):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+    """Number node (y, x) read + 1 if no point read it before; the nodes read now."""
+    if marks[y, x] == 0:
+        read += 1
+        marks[y, x] = read
+    return read
 
 
 SPARSE = 4
 """A plane whose points read fewer than 1/SPARSE of its span's nodes is copied node by
-node (`planes_channels_last`), the rest row by row."""
+node (`planes_channels_last`) and its gradient gathered node by node (`sample_backward`);
+the rest row by row."""
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _sparse(span):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+    """Whether a plane's points read fewer than 1/SPARSE of its span's nodes."""
+    return span[4] * SPARSE < (span[1] + 1 - span[0]) * (span[3] + 1 - span[2])
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def planes_channels_last(planes, shift, spans, touched, values):  # type: ignore[no-untyped-def]  # pragma: no cover
+def planes_channels_last(planes, shift, spans, slots, values):  # type: ignore[no-untyped-def]  # pragma: no cover
     """values[g, h, w, c] = planes[g, c, h, w] − shift at every node the points of plane g
     read (`placements`); values elsewhere are left as they are. One job per (plane, row).
     A row of a plane whose points read few of its span's nodes (under 1/SPARSE) copies
@@ -147,9 +157,8 @@ def planes_channels_last(planes, shift, spans, touched, values):  # type: ignore
         if h < spans[g, 2] or h > spans[g, 3]:
             continue
         first, last = spans[g, 0], spans[g, 1] + 1
-        area = (last - first) * (spans[g, 3] + 1 - spans[g, 2])
-        if spans[g, 4] * SPARSE < area:
-            marks = touched[g, h]
+        if _sparse(spans[g]):
+            marks = slots[g, h]
             for w in range(first, last):
                 if marks[w]:
                     node = values[g, h, w]
@@ -198,39 +207,54 @@ def _forward_chunk(values, nodes, fractions, shift, one, out, first, last):  # t
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def sample_backward(values, nodes, fractions, one, scales, upstream, block, spans, grads, coords):  # type: ignore[no-untyped-def]  # pragma: no cover
+def sample_backward(  # type: ignore[no-untyped-def]  # pragma: no cover
+    values, nodes, fractions, one, scales, upstream, block, spans, slots, grads, coords
+):
     """From upstream [G, N, C], the gradient of `sample_forward`'s out: grads [G, C, H, W]
-    for the planes, `block` channels a job (a divisor of C, `plane_block`), zero outside
-    each plane's span (`placements`), and coords [N, G, 2], each plane's gradient on its
-    two coordinate columns at every point (none when coords holds no points); scales =
-    ((W − 1)/2, (H − 1)/2), the grid's nodes per unit of coordinate."""
-    groups, height, channels = values.shape[0], values.shape[1], values.shape[3]
+    for the planes, `block` channels a job (a divisor of C, `plane_block`), zero at every
+    node no point read (spans and slots from `placements`), and coords [N, G, 2], each
+    plane's gradient on its two coordinate columns at every point (none when coords holds
+    no points); scales = ((W − 1)/2, (H − 1)/2), the grid's nodes per unit of coordinate."""
+    groups, channels = values.shape[0], values.shape[3]
     blocks = channels // block
     # Two loops, so that each shares its own kind of job evenly among the threads.
     for job in prange(groups * blocks):
         g, c0 = job // blocks, job % blocks * block
-        x_first, x_last, y_first, y_last = spans[g, 0], spans[g, 1], spans[g, 2], spans[g, 3]
-        sums = np.zeros((y_last + 1 - y_first, x_last + 1 - x_first, block), values.dtype)
-        _plane_job(nodes[g], fractions[g], one, upstream[g], c0, x_first, y_first, sums)
-        zero = one - one
-        for c in range(block):
-            grad = grads[g, c0 + c]
-            for h in range(height):
-                row = grad[h]
-                if h < y_first or h > y_last:
-                    row[:] = zero
-                    continue
-                row[:x_first] = zero
-                row[x_last + 1 :] = zero
-                kept = sums[h - y_first]
-                for w in range(x_first, x_last + 1):
-                    row[w] = kept[w - x_first, c]
+        out = grads[g, c0 : c0 + block]
+        if _sparse(spans[g]):
+            _nodes_job(nodes[g], fractions[g], one, upstream[g], c0, spans[g], slots[g], out)
+        else:
+            _span_job(nodes[g], fractions[g], one, upstream[g], c0, spans[g], out)
     n = coords.shape[0]
     chunks = (n + CHUNK - 1) // CHUNK
     for job in prange(groups * chunks):
         g, first = job // chunks, job % chunks * CHUNK
         _coordinate_chunk(values[g], nodes[g], fractions[g], one, scales, upstream[g],
                           coords[:, g], first, min(first + CHUNK, n))  # fmt: skip
+
+
+@njit(cache=True, nogil=True)
+def _span_job(nodes, fractions, one, upstream, c0, span, out):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """out [block, H, W], one plane's gradient in channels c0 … c0 + block: the points'
+    upstream gradients added into a private buffer of the plane's span, then written out,
+    zero outside the span."""
+    block, height = out.shape[0], out.shape[1]
+    x_first, x_last, y_first, y_last = span[0], span[1], span[2], span[3]
+    sums = np.zeros((y_last + 1 - y_first, x_last + 1 - x_first, block), out.dtype)
+    _plane_job(nodes, fractions, one, upstream, c0, x_first, y_first, sums)
+    zero = one - one
+    for c in range(block):
+        grad = out[c]
+        for h in range(height):
+            row = grad[h]
+            if h < y_first or h > y_last:
+                row[:] = zero
+                continue
+            row[:x_first] = zero
+            row[x_last + 1 :] = zero
+            kept = sums[h - y_first]
+            for w in range(x_first, x_last + 1):
+                row[w] = kept[w - x_first, c]
 
 
 @njit(cache=True, nogil=True, **_NOALIAS)
@@ -250,6 +274,35 @@ def _plane_job(nodes, fractions, one, upstream, c0, x_first, y_first, sums):  # 
         _add_scaled(sums[y0, x1], up, ne)
         _add_scaled(sums[y1, x0], up, sw)
         _add_scaled(sums[y1, x1], up, se)
+
+
+@njit(cache=True, nogil=True, **_NOALIAS)
+def _nodes_job(nodes, fractions, one, upstream, c0, span, slots, out):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """`_span_job` for a plane whose points read few of its span's nodes: the private
+    buffer holds one row per node read (slots [H, W], from `placements`), and the gradient
+    is gathered from it, zero at the nodes no point read."""
+    block, height = out.shape[0], out.shape[1]
+    sums = np.zeros((span[4], block), out.dtype)
+    for n in range(nodes.shape[0]):
+        x0, x1, y0, y1 = nodes[n, 0], nodes[n, 1], nodes[n, 2], nodes[n, 3]
+        _, _, _, _, nw, ne, sw, se = _weights(fractions, n, one)
+        up = upstream[n, c0 : c0 + block]
+        _add_scaled(sums[slots[y0, x0] - 1], up, nw)
+        _add_scaled(sums[slots[y0, x1] - 1], up, ne)
+        _add_scaled(sums[slots[y1, x0] - 1], up, sw)
+        _add_scaled(sums[slots[y1, x1] - 1], up, se)
+    zero = one - one
+    for c in range(block):
+        grad = out[c]
+        for h in range(height):
+            row = grad[h]
+            if h < span[2] or h > span[3]:
+                row[:] = zero
+                continue
+            marks = slots[h]
+            for w in range(row.shape[0]):
+                slot = marks[w]
+                row[w] = sums[slot - 1, c] if slot > 0 else zero
 
 
 @njit(cache=True, nogil=True, inline="always")

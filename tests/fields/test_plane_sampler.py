@@ -144,7 +144,7 @@ def test_the_plane_jobs_block_changes_no_digit() -> None:
 
     planes, coords, upstream = _case((3, 32, 13, 35), 2000, torch.float32, seed=6)
     values = planes.permute(0, 2, 3, 1).contiguous()
-    nodes, fractions, spans, _ = ps._placed(planes, coords, COLUMNS)
+    nodes, fractions, spans, slots = ps._placed(planes, coords, COLUMNS)
     scales = np.array([(35 - 1) / 2, (13 - 1) / 2], dtype=np.float32)
     grads = []
     for block in (ps.BLOCK, sk.WIDE_BLOCK):
@@ -152,7 +152,8 @@ def test_the_plane_jobs_block_changes_no_digit() -> None:
         coords_grad = torch.empty(0, 3, 2)
         sk.sample_backward(values.numpy(), nodes.numpy(), fractions.numpy(), np.float32(1),
                            scales, upstream.squeeze(2).transpose(1, 2).contiguous().numpy(),
-                           block, spans.numpy(), grad.numpy(), coords_grad.numpy())  # fmt: skip
+                           block, spans.numpy(), slots.numpy(), grad.numpy(),
+                           coords_grad.numpy())  # fmt: skip
         grads.append(grad)
     assert bool(grads[0].isfinite().all())  # every entry written
     assert torch.equal(grads[0], grads[1])
@@ -162,9 +163,9 @@ def test_the_plane_jobs_block_changes_no_digit() -> None:
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_points_in_a_corner_of_the_planes(dtype: torch.dtype) -> None:
     """Points that read a few nodes of large planes (a real capture's moving part): the
-    compiled path copies and adds only the span of nodes they read, and the planes'
-    gradient is zero everywhere else, as the reference's is. One span reaches the last
-    node (x1 = x0 there), one the first."""
+    compiled path copies and adds only the span of nodes they read (or only the nodes
+    read, where they are few), and the planes' gradient is zero everywhere else, as the
+    reference's is. One span reaches the last node (x1 = x0 there), one the first."""
     planes, coords, upstream = _case((3, 16, 40, 50), 300, dtype, seed=7)
     generator = torch.Generator().manual_seed(8)
     coords = 0.2 * torch.rand(300, 4, generator=generator, dtype=dtype) + 0.5
@@ -179,9 +180,11 @@ def test_points_in_a_corner_of_the_planes(dtype: torch.dtype) -> None:
     assert bool((grad[0, :, :, :30] == 0).all())  # columns no point of plane 0 reads
     assert bool((grad[1, :, 0] != 0).any())  # the first row, which plane 1 reads
     assert bool((grad[0, :, :, -1] != 0).any())  # the last column, which plane 0 reads
-    _, _, spans, touched = ps._placed(planes, coords, COLUMNS)
+    _, _, spans, slots = ps._placed(planes, coords, COLUMNS)
     assert spans[0, 1] == 49 and spans[1, 2] == 0  # the last x node, the first y node
-    assert spans[:, 4].tolist() == touched.sum(dim=(1, 2)).tolist()  # the nodes read
+    for g in range(3):  # the nodes read are numbered 1 … their count, once each
+        numbers = slots[g][slots[g] > 0].sort().values
+        assert numbers.tolist() == list(range(1, int(spans[g, 4]) + 1))
     # Both ways of copying ran: a plane whose points read few of its span's nodes, node by
     # node, and one whose points read many, row by row.
     from dyngs.fields.sampler_kernels import SPARSE
@@ -191,10 +194,37 @@ def test_points_in_a_corner_of_the_planes(dtype: torch.dtype) -> None:
     assert bool(sparse.any()) and not bool(sparse.all())
 
 
+def test_the_sparse_planes_gradient_is_the_span_ones_to_the_bit() -> None:
+    """A plane's nodes add their points in the same order gathered node by node as in the
+    span's buffer: forcing the span's way (a node count that is not sparse) changes no
+    digit."""
+    from dyngs.fields import sampler_kernels as sk
+
+    # 100 points on 60 × 70 planes read some 400 of a plane's 4 200 nodes.
+    planes, coords, upstream = _case((3, 16, 60, 70), 100, torch.float32, seed=9)
+    values = planes.permute(0, 2, 3, 1).contiguous()
+    nodes, fractions, spans, slots = ps._placed(planes, coords, COLUMNS)
+    area = (spans[:, 1] + 1 - spans[:, 0]) * (spans[:, 3] + 1 - spans[:, 2])
+    assert bool((spans[:, 4] * sk.SPARSE < area).all())
+    dense = spans.clone()
+    dense[:, 4] = area  # never sparse
+    scales = np.array([(70 - 1) / 2, (60 - 1) / 2], dtype=np.float32)
+    grads = []
+    for given in (spans, dense):
+        grad = torch.full_like(planes, float("nan"))
+        sk.sample_backward(values.numpy(), nodes.numpy(), fractions.numpy(), np.float32(1),
+                           scales, upstream.squeeze(2).transpose(1, 2).contiguous().numpy(),
+                           16, given.numpy(), slots.numpy(), grad.numpy(),
+                           torch.empty(0, 3, 2).numpy())  # fmt: skip
+        grads.append(grad)
+    assert bool(grads[0].isfinite().all())
+    assert torch.equal(grads[0], grads[1])
+
+
 def test_the_span_of_no_points_is_empty() -> None:
     planes, coords, _ = _case((3, 8, 5, 5), 0, torch.float32, seed=0)
-    _, _, spans, touched = ps._placed(planes, coords, COLUMNS)
-    assert spans.tolist() == [[0, -1, 0, -1, 0]] * 3 and not bool(touched.any())
+    _, _, spans, slots = ps._placed(planes, coords, COLUMNS)
+    assert spans.tolist() == [[0, -1, 0, -1, 0]] * 3 and not bool(slots.any())
 
 
 def test_channels_that_are_not_a_block_use_the_reference() -> None:
