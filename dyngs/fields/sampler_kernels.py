@@ -21,8 +21,9 @@ apart. Here:
   by side, [G, N, C] (the layout the compiled products read);
 - `sample_backward` has two kinds of job. One per (plane, block of channels) adds each
   point's upstream gradient into that block's four corners, in a private buffer the
-  size of the plane's span, point by point in order, and writes zeros outside the span:
-  the same digits at any block size, which only shares the work (`plane_block`). One
+  size of the plane's span (or one row per node read, where they are few), point by
+  point in order, and writes zeros at the nodes no point read: the same digits either
+  way and at any block size, which only shares the work (`plane_block`). One
   per (plane, run of CHUNK points) forms each point's gradient on its two coordinates,
   a sum over the C channels.
 Loops over a block's channels run to a length known only when the kernel runs: numba
