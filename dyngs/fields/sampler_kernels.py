@@ -28,14 +28,16 @@ apart. Here:
   a sum over the C channels.
 Loops over a block's channels run to a length known only when the kernel runs: numba
 leaves LLVM's SLP vectoriser off (numba PR #8852, after miscompilations), and its loop
-vectoriser leaves a loop of a constant 8 iterations scalar (measured: a third of the
-speed). The coordinates' channel sum is compiled with `fastmath={"reassoc"}` alone, so
-that LLVM may add it in vector lanes (3.3× faster than the fixed lanes and tree it
-replaced): the order follows the machine's vector width, so the last bits may differ
-between machines (as PyTorch's own kernels' do), never between runs or thread counts on
-one. No other fast-math assumption is made: NaN and infinity keep their meaning.
-Every job writes its own part of every output, in an order that does not depend on how
-jobs fall to threads, so the results are the same at every thread count.
+vectoriser leaves a loop of a constant 8 iterations scalar (the planes' half of the
+backward ran 1.4-2.2× slower than with the same 8 read at run time, on the demo's plane
+shapes and random points). The coordinates' channel sum is compiled with
+`fastmath={"reassoc"}` alone, so that LLVM may add it in vector lanes (3.3× faster than
+the fixed lanes and tree it replaced): the order follows the machine's vector width, so
+the last bits may differ between machines (as PyTorch's own kernels' do), never between
+runs or thread counts on one. No other fast-math assumption is made: NaN and infinity
+keep their meaning. Every job writes its own part of every output, in an order that does
+not depend on how jobs fall to threads, so the results are the same at every thread
+count.
 
 Placement, as grid_sample's: x ↦ (x + 1)/2 · (W − 1), clipped to [0, W − 1]. The
 coordinate's gradient is zero where the clip holds it at an edge (or beyond), as
