@@ -136,6 +136,29 @@ def test_the_planes_gradient_alone_is_the_same_without_the_coordinates() -> None
     _close(p.grad, reference, 1e-12)
 
 
+def _span_areas(spans: Tensor) -> Tensor:
+    """Each plane's span's node count, from `_placed`'s spans."""
+    return (spans[:, 1] + 1 - spans[:, 0]) * (spans[:, 3] + 1 - spans[:, 2])
+
+
+def _kernel_gradient(
+    planes: Tensor, coords: Tensor, upstream: Tensor, block: int, spans: Tensor, slots: Tensor
+) -> Tensor:
+    """The planes' gradient straight from `sampler_kernels.sample_backward` (shift 0, no
+    coordinates' gradient), every entry NaN until the kernel writes it."""
+    from dyngs.fields import sampler_kernels as sk
+
+    height, width = planes.shape[2:]
+    values = planes.permute(0, 2, 3, 1).contiguous()
+    nodes, fractions, _, _ = ps._placed(planes, coords, COLUMNS)
+    scales = np.array([(width - 1) / 2, (height - 1) / 2], dtype=np.float32)
+    grad = torch.full_like(planes, float("nan"))
+    sk.sample_backward(values.numpy(), nodes.numpy(), fractions.numpy(), np.float32(1), scales,
+                       ps.channels_last(upstream).numpy(), block, spans.numpy(), slots.numpy(),
+                       grad.numpy(), torch.empty(0, 3, 2).numpy())  # fmt: skip
+    return grad
+
+
 def test_the_plane_jobs_block_changes_no_digit() -> None:
     """Each plane node adds its points in the same order at any block of channels a job
     takes: 8 or 16 give the same gradient to the bit (`sampler_kernels.plane_block` picks
@@ -143,18 +166,11 @@ def test_the_plane_jobs_block_changes_no_digit() -> None:
     from dyngs.fields import sampler_kernels as sk
 
     planes, coords, upstream = _case((3, 32, 13, 35), 2000, torch.float32, seed=6)
-    values = planes.permute(0, 2, 3, 1).contiguous()
-    nodes, fractions, spans, slots = ps._placed(planes, coords, COLUMNS)
-    scales = np.array([(35 - 1) / 2, (13 - 1) / 2], dtype=np.float32)
-    grads = []
-    for block in (ps.BLOCK, sk.WIDE_BLOCK):
-        grad = torch.full_like(planes, float("nan"))
-        coords_grad = torch.empty(0, 3, 2)
-        sk.sample_backward(values.numpy(), nodes.numpy(), fractions.numpy(), np.float32(1),
-                           scales, upstream.squeeze(2).transpose(1, 2).contiguous().numpy(),
-                           block, spans.numpy(), slots.numpy(), grad.numpy(),
-                           coords_grad.numpy())  # fmt: skip
-        grads.append(grad)
+    _, _, spans, slots = ps._placed(planes, coords, COLUMNS)
+    grads = [
+        _kernel_gradient(planes, coords, upstream, block, spans, slots)
+        for block in (ps.BLOCK, sk.WIDE_BLOCK)
+    ]
     assert bool(grads[0].isfinite().all())  # every entry written
     assert torch.equal(grads[0], grads[1])
     assert [sk.plane_block(c) for c in (8, 16, 24, 32, 48, 64)] == [8, 8, 8, 16, 16, 16]
@@ -189,8 +205,7 @@ def test_points_in_a_corner_of_the_planes(dtype: torch.dtype) -> None:
     # node, and one whose points read many, row by row.
     from dyngs.fields.sampler_kernels import SPARSE
 
-    area = (spans[:, 1] + 1 - spans[:, 0]) * (spans[:, 3] + 1 - spans[:, 2])
-    sparse = spans[:, 4] * SPARSE < area
+    sparse = spans[:, 4] * SPARSE < _span_areas(spans)
     assert bool(sparse.any()) and not bool(sparse.all())
 
 
@@ -202,21 +217,14 @@ def test_the_sparse_planes_gradient_is_the_span_ones_to_the_bit() -> None:
 
     # 100 points on 60 × 70 planes read some 400 of a plane's 4 200 nodes.
     planes, coords, upstream = _case((3, 16, 60, 70), 100, torch.float32, seed=9)
-    values = planes.permute(0, 2, 3, 1).contiguous()
-    nodes, fractions, spans, slots = ps._placed(planes, coords, COLUMNS)
-    area = (spans[:, 1] + 1 - spans[:, 0]) * (spans[:, 3] + 1 - spans[:, 2])
+    _, _, spans, slots = ps._placed(planes, coords, COLUMNS)
+    area = _span_areas(spans)
     assert bool((spans[:, 4] * sk.SPARSE < area).all())
     dense = spans.clone()
     dense[:, 4] = area  # never sparse
-    scales = np.array([(70 - 1) / 2, (60 - 1) / 2], dtype=np.float32)
-    grads = []
-    for given in (spans, dense):
-        grad = torch.full_like(planes, float("nan"))
-        sk.sample_backward(values.numpy(), nodes.numpy(), fractions.numpy(), np.float32(1),
-                           scales, upstream.squeeze(2).transpose(1, 2).contiguous().numpy(),
-                           16, given.numpy(), slots.numpy(), grad.numpy(),
-                           torch.empty(0, 3, 2).numpy())  # fmt: skip
-        grads.append(grad)
+    grads = [
+        _kernel_gradient(planes, coords, upstream, 16, given, slots) for given in (spans, dense)
+    ]
     assert bool(grads[0].isfinite().all())
     assert torch.equal(grads[0], grads[1])
 
