@@ -268,7 +268,7 @@ def _footprint_cells(foot: tuple) -> int:  # pragma: no cover - compiled
 @njit(parallel=True, cache=True, nogil=True)
 def composite_forward(
     scene: tuple,
-    tile_order: np.ndarray,
+    deal: tuple,
     layout: tuple,
     limits: tuple,
     sums: np.ndarray,
@@ -277,20 +277,22 @@ def composite_forward(
     work: np.ndarray,
     threads: int,
 ) -> None:  # pragma: no cover - compiled
-    """Composite every tile in `tile_order` front to back, on `threads` threads.
+    """Composite the tiles of `deal` front to back, on `threads` threads: deal (order,
+    bounds) gives thread j the tiles order[bounds[j]:bounds[j + 1]].
 
     Writes, for every pixel of those tiles, sums [H, W, 5] (Σ w·(r, g, b, depth, 1), in
     the compositing dtype), transmittance [H, W] (float64, after the last pair drawn) and
     last [H, W] (that pair's position in its tile's list, −1 for none), unless both are
     empty (a render no backward will follow); and, when
     `contribution` has M entries, each pair's Σ w over its tile's pixels. work[i] counts
-    tile_order[i]'s lanes (the cells its Gaussians' rows and blocks cover, each evaluated
+    order[i]'s lanes (the cells its Gaussians' rows and blocks cover, each evaluated
     whether or not it is inside the ellipse) and the pairs it drew.
     """
+    order, bounds = deal
     for thread in prange(threads):
         stored = kept[2].shape[1] if kept[3].shape[0] > 0 else 0  # where its α start
-        for i in range(thread, tile_order.shape[0], threads):
-            lanes, drawn, stored = _forward_tile(scene, tile_order[i], layout, limits, sums,
+        for i in range(bounds[thread], bounds[thread + 1]):
+            lanes, drawn, stored = _forward_tile(scene, order[i], layout, limits, sums,
                                                  kept, contribution, thread, stored)  # fmt: skip
             work[i, 0] = lanes
             work[i, 1] = drawn
@@ -461,7 +463,7 @@ def _forward_gaussian(
 @njit(parallel=True, cache=True, nogil=True)
 def composite_backward(
     scene: tuple,
-    tile_order: np.ndarray,
+    deal: tuple,
     layout: tuple,
     limits: tuple,
     grad_sums: np.ndarray,
@@ -474,14 +476,15 @@ def composite_backward(
 
     grad_sums [H, W, 5] is in any float dtype (read as float64); transmittance and last
     are what `composite_forward` left. Writes pair_grads [M, `PAIR_GRADS`] for every pair
-    of the tiles in `tile_order`.
+    of the tiles in `deal`, each on the thread the forward drew it on.
     With w = α T and s = ∂L/∂(Σ w f) · f for a pixel, ∂L/∂α of pair k is
     T_k (s_k − R_k), where R_k = Σ_{j>k} s_j w_j / T_{k+1} is carried back to front:
     R_{k−1} = s_k α_k + (1 − α_k) R_k.
     """
+    order, bounds = deal
     for thread in prange(threads):
-        for i in range(thread, tile_order.shape[0], threads):
-            _backward_tile(scene, tile_order[i], layout, limits, grad_sums, kept,
+        for i in range(bounds[thread], bounds[thread + 1]):
+            _backward_tile(scene, order[i], layout, limits, grad_sums, kept,
                            pair_grads, thread)  # fmt: skip
 
 

@@ -19,7 +19,7 @@ from dyngs.renderers import cpu_tile
 from dyngs.renderers.base import Guards, RenderOutput
 from dyngs.renderers.cpu_reference import CpuReferenceConfig
 from dyngs.renderers.cpu_tile import CpuTileConfig
-from dyngs.renderers.stages import ScreenGaussians, bin_tiles, project
+from dyngs.renderers.stages import ScreenGaussians, TileBins, bin_tiles, project
 from dyngs.types import Camera, Gaussians
 from tests.renderers.scenes import random_scene
 from tests.renderers.test_cpu_reference import _tiny_scene
@@ -120,6 +120,40 @@ def test_gradcheck_gaussian_parameters(sh_degree: int | None) -> None:
 
     inputs = tuple(getattr(base, name).clone().requires_grad_(True) for name in PARAMS)
     assert torch.autograd.gradcheck(image, inputs, eps=1e-6, atol=1e-6, rtol=1e-4)
+
+
+def _plan_of_counts(counts: list[int], threads: int) -> cpu_tile._Plan:
+    """A plan whose tiles hold `counts` Gaussians (the pairs themselves do not matter)."""
+    count = torch.tensor(counts)
+    bins = TileBins(torch.zeros(int(count.sum()), dtype=torch.long), count.cumsum(0) - count,
+                    count)  # fmt: skip
+    return cpu_tile._Plan(bins, (8 * len(counts), 8, 8), Guards(), threads, False, True)
+
+
+def test_tiles_are_dealt_busiest_first_to_the_least_loaded_thread() -> None:
+    order, bounds = _plan_of_counts([0, 5, 3, 3, 2, 0, 7, 1], 2).deal()
+    # 7 → thread 0; 5, 3 → thread 1 (5, then 8 < 7 + 3); 3 → thread 0 (10); 2 → thread 1
+    # (10); 1 → thread 0, the first of two equally loaded.
+    assert bounds.tolist() == [0, 3, 6]
+    assert order.tolist() == [6, 3, 7, 1, 2, 4]
+    order, bounds = _plan_of_counts([0, 5, 3, 3, 2, 0, 7, 1], 1).deal()
+    assert bounds.tolist() == [0, 6] and order.tolist() == [6, 1, 2, 3, 4, 7]
+
+
+@pytest.mark.parametrize("threads", [1, 2, 7])
+def test_every_busy_tile_is_dealt_once_and_no_thread_is_loaded_past_lpts_bound(
+    threads: int,
+) -> None:
+    gen = torch.Generator().manual_seed(threads)
+    counts = torch.randint(0, 40, (57,), generator=gen) * (torch.rand(57, generator=gen) > 0.3)
+    order, bounds = _plan_of_counts(counts.tolist(), threads).deal()
+    threads = len(bounds) - 1  # within numba's pool (thread_count)
+    assert sorted(order.tolist()) == counts.nonzero().squeeze(1).tolist()
+    assert bounds[0] == 0 and bounds[-1] == len(order) and (np.diff(bounds) >= 0).all()
+    loads = [int(counts[order[bounds[j] : bounds[j + 1]]].sum()) for j in range(threads)]
+    # Graham: the last tile placed went to the least loaded thread, so no thread ends
+    # more than one tile's work above the mean.
+    assert max(loads) <= sum(loads) / threads + int(counts.max())
 
 
 def test_gradcheck_of_the_compiled_compositing() -> None:
