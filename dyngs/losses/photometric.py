@@ -27,6 +27,7 @@ reduces to its luminance term, finite for any pair of constants because c1 > 0).
 
 from __future__ import annotations
 
+from functools import lru_cache
 from typing import Any, Literal
 
 import numpy as np
@@ -149,7 +150,7 @@ def ssim_map(
     window = fit_window(window_size, pred.shape[0], pred.shape[1], padding)
     dtype = torch.promote_types(pred.dtype, target.dtype)
     a, b = pred.to(dtype).permute(2, 0, 1)[None], target.to(dtype).permute(2, 0, 1)[None]
-    kernel = get_gaussian_kernel1d(window, 1.5, device=a.device, dtype=dtype)
+    kernel = ssim_taps(window, a.device, dtype)
     # 'same': reflect padding; 'valid' is the 'same' map cropped, as kornia computes it.
     # The target's moments are blurred apart from the prediction's: the blur treats every
     # channel alone (the same values), and a target that needs no gradient then costs no
@@ -163,6 +164,14 @@ def ssim_map(
     else:
         ssim = ssim_from_moments(mu1, mean11, mean12, mu2, mean22)
     return ssim[0].permute(1, 2, 0)
+
+
+@lru_cache(maxsize=16)
+def ssim_taps(window: int, device: torch.device, dtype: torch.dtype) -> Float[Tensor, "1 K"]:
+    """SSIM's Gaussian window (σ = 1.5), kornia's, built once per size, device and dtype:
+    kornia builds it from scratch, ~0.1 ms a call on the CPU, a constant paid by every
+    training step. Read only: the blurs never write it."""
+    return get_gaussian_kernel1d(window, 1.5, device=device, dtype=dtype)
 
 
 def ssim_from_moments(

@@ -7,10 +7,11 @@ import importlib
 import numpy as np
 import pytest
 import torch
+from kornia.filters import get_gaussian_kernel1d
 from kornia.losses import ssim_loss
 from kornia.metrics import ssim as kornia_ssim
 
-from dyngs.losses.photometric import dssim, fit_window, l1, photometric, ssim_map
+from dyngs.losses.photometric import dssim, fit_window, l1, photometric, ssim_map, ssim_taps
 
 C1 = 0.01**2  # SSIM's stabilisers for data range 1 (Wang et al. 2004)
 
@@ -209,3 +210,12 @@ def test_ssim_map_is_kornias(padding: str, height: int, width: int, window: int)
     assert ours32.dtype == ours32_grad.dtype == torch.float32
     assert float((ours32.double() - truth).abs().max()) <= 2e-6
     assert float((ours32_grad.double() - truth_grad).abs().max()) <= 1e-6 * scale
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_ssims_window_is_kornias_built_once(dtype: torch.dtype) -> None:
+    cpu = torch.device("cpu")
+    taps = ssim_taps(11, cpu, dtype)
+    assert torch.equal(taps, get_gaussian_kernel1d(11, 1.5, device=cpu, dtype=dtype))
+    assert taps.dtype == dtype and not taps.requires_grad
+    assert ssim_taps(11, cpu, dtype) is taps and ssim_taps(7, cpu, dtype).shape == (1, 7)
