@@ -32,7 +32,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from profile_step import train_command, trainer_at  # noqa: E402
 
-from dyngs.compiled import kernel_times  # noqa: E402
+from dyngs.compiled import kernel_times, thread_count  # noqa: E402
 from dyngs.renderers import cpu_tile  # noqa: E402
 from dyngs.tools.common import machine_info, source_commit  # noqa: E402
 
@@ -40,9 +40,12 @@ BY_WORK = cpu_tile._Plan.deal
 
 
 def in_turn(plan: cpu_tile._Plan) -> tuple[np.ndarray, np.ndarray]:
-    """The busy tiles, busiest first, dealt to the threads in turn."""
-    order, bounds = BY_WORK(plan)
-    threads = len(bounds) - 1
+    """The busy tiles, busiest first (by Gaussian count, ties in tile order), dealt to
+    the threads in turn."""
+    counts = plan.bins.tile_count
+    busy = (counts > 0).nonzero().squeeze(1)
+    order = busy[torch.argsort(counts[busy], descending=True, stable=True)].numpy()
+    threads = thread_count(plan.threads)
     owner = np.arange(len(order)) % threads
     grouped = np.zeros(threads + 1, dtype=np.int64)
     np.cumsum(np.bincount(owner, minlength=threads), out=grouped[1:])

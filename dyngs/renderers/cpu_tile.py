@@ -191,8 +191,8 @@ class _Plan:
 
         Busiest first to the least loaded thread (Graham's LPT rule), a tile's work taken
         as its Gaussian count. Dealt in turn instead, the demo's trained frames (10-12
-        busy tiles, two threads) gave the busier thread 15 % more cells than the mean,
-        against 6 % so (docs/RENDERER.md, "Tiles dealt by their work"). Which thread
+        busy tiles, two threads) gave the busier thread 13-15 % more cells than the mean,
+        against 6-8 % so (docs/RENDERER.md, "Tiles dealt by their work"). Which thread
         draws a tile changes nothing in the image or its gradients."""
         counts = self.bins.tile_count
         busy = (counts > 0).nonzero().squeeze(1)
