@@ -42,14 +42,9 @@ BY_WORK = cpu_tile._Plan.deal
 def in_turn(plan: cpu_tile._Plan) -> tuple[np.ndarray, np.ndarray]:
     """The busy tiles, busiest first (by Gaussian count, ties in tile order), dealt to
     the threads in turn."""
-    counts = plan.bins.tile_count
-    busy = (counts > 0).nonzero().squeeze(1)
-    order = busy[torch.argsort(counts[busy], descending=True, stable=True)].numpy()
+    order = plan.busiest_first()
     threads = thread_count(plan.threads)
-    owner = np.arange(len(order)) % threads
-    grouped = np.zeros(threads + 1, dtype=np.int64)
-    np.cumsum(np.bincount(owner, minlength=threads), out=grouped[1:])
-    return order[np.argsort(owner, kind="stable")], grouped
+    return cpu_tile.grouped_by_thread(order, np.arange(len(order)) % threads, threads)
 
 
 def main() -> None:

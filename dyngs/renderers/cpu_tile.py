@@ -194,20 +194,23 @@ class _Plan:
         busy tiles, two threads) gave the busier thread 13-15 % more cells than the mean,
         against 6-8 % so (docs/RENDERER.md, "Tiles dealt by their work"). Which thread
         draws a tile changes nothing in the image or its gradients."""
-        counts = self.bins.tile_count
-        busy = (counts > 0).nonzero().squeeze(1)
-        order = busy[torch.argsort(counts[busy], descending=True, stable=True)].numpy()
+        order = self.busiest_first()
         threads = thread_count(self.threads)
         owner = np.zeros(len(order), dtype=np.int64)
         if threads > 1:
             loads = [(0, j) for j in range(threads)]  # a heap of (work so far, thread)
-            for i, count in enumerate(counts.numpy()[order].tolist()):
+            for i, count in enumerate(self.bins.tile_count.numpy()[order].tolist()):
                 load, j = heapq.heappop(loads)
                 owner[i] = j
                 heapq.heappush(loads, (load + count, j))
-        bounds = np.zeros(threads + 1, dtype=np.int64)
-        np.cumsum(np.bincount(owner, minlength=threads), out=bounds[1:])
-        return order[np.argsort(owner, kind="stable")], bounds
+        return grouped_by_thread(order, owner, threads)
+
+    def busiest_first(self) -> np.ndarray:
+        """The tiles with any Gaussian, by Gaussian count, the busiest first (ties in tile
+        order)."""
+        counts = self.bins.tile_count
+        busy = (counts > 0).nonzero().squeeze(1)
+        return busy[torch.argsort(counts[busy], descending=True, stable=True)].numpy()
 
     def layout(self) -> tuple[int, int, int, int]:
         """(tiles across, tile size, width, height), as the kernels take it."""
@@ -218,6 +221,17 @@ class _Plan:
         """(α floor, α ceiling, transmittance floor), as the kernels take them."""
         g = self.guards
         return g.alpha_min, g.alpha_max, g.transmittance_min
+
+
+def grouped_by_thread(
+    order: np.ndarray, owner: np.ndarray, threads: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """A deal as the kernels take it, (tiles, bounds): the tiles of `order` grouped by
+    their `owner` thread, each group in `order`'s order, thread j's being
+    tiles[bounds[j]:bounds[j + 1]]."""
+    bounds = np.zeros(threads + 1, dtype=np.int64)
+    np.cumsum(np.bincount(owner, minlength=threads), out=bounds[1:])
+    return order[np.argsort(owner, kind="stable")], bounds
 
 
 class _AlphaStore:
