@@ -151,6 +151,29 @@ class TrainBatch:
     sources, or a format's foreground segmentation)."""
     index: int
     """Position of the view in its split."""
+    full: TrainBatch | None = None
+    """The whole view, when this one is it shrunk (`coarse`); None when it is whole."""
+
+    def coarse(self, factor: int) -> TrainBatch:
+        """This view at 1/`factor` of its resolution: the image and mask area-averaged (as
+        `--downscale` shrinks images on loading) to `Camera.scaled`'s size, and the camera
+        scaled alike. `full` keeps the whole view (`Objective.pixel_weights` reads it)."""
+        if factor == 1:
+            return self
+        camera = self.camera.scaled(1.0 / factor)
+        return TrainBatch(camera, self.time, area_resize(self.image, camera),
+                          None if self.mask is None else area_resize(self.mask, camera),
+                          self.index, self)  # fmt: skip
+
+
+def area_resize(image: Float[Tensor, "H W C"], camera: Camera) -> Float[Tensor, "h w C"]:
+    """`image` area-averaged to the camera's size: each output pixel the mean of the input
+    pixels under it (adaptive average pooling; where the factor divides a side, exactly
+    the block means `--downscale` makes)."""
+    chw = image.permute(2, 0, 1)[None]
+    size = (camera.height, camera.width)
+    shrunk = torch.nn.functional.interpolate(chw, size=size, mode="area")
+    return shrunk[0].permute(1, 2, 0).contiguous()
 
 
 class _ServedSplit:

@@ -225,11 +225,14 @@ def view_statistics(
     time: float = 0.5,
     views: int = 1,
     absgrad: bool = False,
+    pixel_scale: float = 1.0,
 ) -> StepStatistics | None:
     """One view's screen-space gradients, and the canonical means' gradient at its time
     (call after backward; None when nothing reached the screen). With the loss averaged
     over `views` views, gradients are scaled back to one view's, as gsplat does for
-    batches, so that `--densify.grad-threshold` keeps its meaning."""
+    batches, so that `--densify.grad-threshold` keeps its meaning. Radii are counted in
+    pixels `pixel_scale` times smaller than the render's (the view's own pixels, for a
+    coarse render), so that `--densify.prune-screen-size` keeps its meaning too."""
     grad = out.means2d.grad
     if grad is None:
         return None
@@ -242,6 +245,8 @@ def view_statistics(
         seen = out.visible
         zeros = torch.zeros_like(norm)
         radius = out.radii.max(dim=-1).values.to(norm.dtype)
+        if pixel_scale != 1.0:
+            radius = radius * pixel_scale
         if out.contribution is None:
             # Not measured (not asked for, or the renderer cannot): never prune by it. When
             # the window's views decide, `measure_importance` replaces it before refining.

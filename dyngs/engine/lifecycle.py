@@ -417,9 +417,11 @@ def densify_statistics(
     means_grad: Tensor | None,
     time: float,
     views: int,
+    pixel_scale: float = 1.0,
 ) -> StepStatistics | None:
     """A view's densification statistics (`densify.view_statistics`) under the lifecycle's
-    config. A renderer that cannot measure the absolute gradient makes the run densify by
+    config; `pixel_scale` is the size of the render's pixels in the view's own (a coarse
+    view's factor). A renderer that cannot measure the absolute gradient makes the run densify by
     the gradient against its own threshold (`lifecycle.config` changes), said once."""
     config = lifecycle.config
     if config.densify.absgrad and out.means2d_absgrad is None:
@@ -432,4 +434,4 @@ def densify_statistics(
             markup=False,
         )
     return view_statistics(out, camera.width, camera.height, means_grad, time, views,
-                           config.densify.absgrad)  # fmt: skip
+                           config.densify.absgrad, pixel_scale)  # fmt: skip

@@ -24,7 +24,7 @@ from jaxtyping import Float
 from torch import Tensor
 
 from dyngs.config import LossConfig
-from dyngs.datamanagers.datamanager import DataManager, TrainBatch
+from dyngs.datamanagers.datamanager import DataManager, TrainBatch, area_resize
 from dyngs.errors import ConfigError
 from dyngs.fields.base import PlaneGrids
 from dyngs.losses import compiled_planes
@@ -122,15 +122,19 @@ class Objective:
     def pixel_weights(self, batch: TrainBatch) -> Float[Tensor, "H W 1"] | None:
         """Per-pixel weights of the photometric loss: the dataset's mask with
         `--losses.masked`, times 1 + `--losses.change-weight` where a fixed camera sees a
-        pixel differ from its usual content."""
+        pixel differ from its usual content. A coarse view (`TrainBatch.coarse`) takes the
+        whole view's weights, area-averaged as its image was."""
         mask = batch.mask if self.config.masked else None
         fixed = self.data.fixed_cameras if self.config.change_weight > 0 else None
         if fixed is None:
             return mask
-        changed = fixed.changed(batch.index, batch.image, self.pixel_change)
+        whole = batch.full or batch  # what a fixed camera's temporal median is compared with
+        changed = fixed.changed(whole.index, whole.image, self.pixel_change)
         if changed is None:
             return mask
         weights = (1 + self.config.change_weight * changed.to(batch.image.dtype))[..., None]
+        if batch.full is not None:
+            weights = area_resize(weights, batch.camera)
         return weights if mask is None else weights * mask
 
     def change_weight_note(self) -> str:

@@ -21,6 +21,7 @@ import dataclasses
 import math
 
 from dyngs.config import TrainConfig
+from dyngs.datamanagers.images import downscaled_size
 from dyngs.engine.optim import deformation_rate_scale
 
 
@@ -100,6 +101,16 @@ def learning_progress(config: TrainConfig, step: int) -> tuple[float, float | No
         return progress, None, scale
     full = window_full_step(config)
     return progress, (at - full) / max(total - full, 1), scale
+
+
+def coarse_factor(config: TrainConfig, step: int, width: int, height: int) -> int:
+    """The factor a training view of width × height is shrunk by at `step`: `--coarse.factor`
+    while the schedule is within `--coarse.until` of the run and the shrunk view keeps
+    `--coarse.min-side` pixels on its shorter side, else 1 (drawn whole)."""
+    c = config.coarse
+    if c.factor == 1 or position(config, step) >= c.until * length(config):
+        return 1
+    return c.factor if min(downscaled_size(width, height, c.factor)) >= c.min_side else 1
 
 
 def refine_stop(config: TrainConfig) -> float:

@@ -265,7 +265,9 @@ class Trainer:
         """Training view `index`, the model at its time + `shift` (in [0, 1]): drawn, its loss
         (over the step's view count) sent backward, its densification statistics taken."""
         model, views = self.model, self.config.batch_views
-        batch = self.data.train_batch(index)
+        whole = self.data.train_batch(index)
+        factor = schedules.coarse_factor(self.config, step, whole.camera.width, whole.camera.height)
+        batch = whole.coarse(factor)
         started, t = time.perf_counter(), min(1.0, max(0.0, batch.time + shift))
         gaussians = model.at(t, sh_degree=probe, absent_below=self.objective.absent_below)
         self.counters.deformation_seconds += time.perf_counter() - started if model.deforms else 0
@@ -276,7 +278,8 @@ class Trainer:
         means_grad = backward_view(loss if views == 1 else loss / views, model.canonical.means)
         if means_grad is not None:  # as the step's gradient will be (quarantine_nonfinite…)
             means_grad = means_grad.masked_fill(~model.canonical.finite_rows()[:, None], 0.0)
-        stats = densify_statistics(self.lifecycle, out, batch.camera, means_grad, batch.time, views)
+        stats = densify_statistics(self.lifecycle, out, batch.camera, means_grad, batch.time, views,
+                                   factor)  # fmt: skip
         return ViewResult(loss.detach(), {k: v.detach() for k, v in terms.items()}, out, batch,
                           stats)  # fmt: skip
 
@@ -307,7 +310,24 @@ class Trainer:
         notes = [*schedules.plan_notes(cfg, sized), self.lifecycle.importance_note(self.renderer)]
         if cfg.losses.change_weight > 0:
             notes.append(self.objective.change_weight_note())
+        if cfg.coarse.until > 0:
+            notes.append(self.coarse_note())
         return [note for note in notes if note is not None]
+
+    def coarse_note(self) -> str:
+        """What `--coarse` does on this scene: how many training views are drawn coarse."""
+        c = self.config.coarse
+        sizes = [(camera.width, camera.height) for camera, _ in self.data.train_poses()]
+        coarse = sum(schedules.coarse_factor(self.config, 0, w, h) > 1 for w, h in sizes)
+        if coarse == 0:
+            return (
+                f"[coarse] every training view is drawn whole: none keeps {c.min_side} px "
+                f"on its shorter side at 1/{c.factor} of its size (--coarse.min-side)"
+            )
+        return (
+            f"[coarse] {coarse} of {len(sizes)} training views are drawn at 1/{c.factor} of "
+            f"their size for the first {c.until:.0%} of the run, whole after it"
+        )
 
     def train(self) -> dict[str, Any]:
         for note in self.notes():
