@@ -20,7 +20,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 from torch import Tensor
 
-from dyngs.config import TrainConfig
+from dyngs.config import CoarseConfig, TrainConfig
 from dyngs.configio import config_to_dict
 from dyngs.datamanagers.base import SceneData
 from dyngs.datamanagers.datamanager import DataManager, load_scene
@@ -310,16 +310,20 @@ class Trainer:
         notes = [*schedules.plan_notes(cfg, sized), self.lifecycle.importance_note(self.renderer)]
         if cfg.losses.change_weight > 0:
             notes.append(self.objective.change_weight_note())
-        if cfg.coarse.until > 0:
-            notes.append(self.coarse_note())
+        notes.append(self.coarse_note())
         return [note for note in notes if note is not None]
 
-    def coarse_note(self) -> str:
-        """What `--coarse` does on this scene: how many training views are drawn coarse."""
+    def coarse_note(self) -> str | None:
+        """What `--coarse` does on this scene: how many training views are drawn coarse;
+        that none is, when the flags asked for something other than the default."""
         c = self.config.coarse
+        if c.until == 0:
+            return None
         sizes = [(camera.width, camera.height) for camera, _ in self.data.train_poses()]
         coarse = sum(schedules.coarse_factor(self.config, 0, w, h) > 1 for w, h in sizes)
         if coarse == 0:
+            if c == CoarseConfig():  # the default on a small scene: it trains as it did
+                return None
             return (
                 f"[coarse] every training view is drawn whole: none keeps {c.min_side} px "
                 f"on its shorter side at 1/{c.factor} of its size (--coarse.min-side)"

@@ -120,10 +120,18 @@ def test_small_views_are_drawn_whole_and_the_run_says_why(tmp_path: Path) -> Non
     assert trainer.train_step(0).out.rgb.shape == (32, 32, 3)
 
 
-def test_the_default_draws_every_view_whole(tmp_path: Path) -> None:
+def test_by_default_only_large_views_are_drawn_coarse() -> None:
+    config, factor = tiny_config(max_iters=100), schedules.coarse_factor
+    assert (factor(config, 0, 480, 270), factor(config, 0, 128, 128)) == (2, 1)
+    assert factor(config, 30, 480, 270) == 1  # the first 30 % only
+
+
+def test_the_default_leaves_small_scenes_as_they_were_and_says_nothing(tmp_path: Path) -> None:
     trainer = tiny_trainer(tmp_path, max_iters=4)
     assert not any(note.startswith("[coarse]") for note in trainer.notes())
     assert trainer.train_step(0).batch.full is None
+    off = tiny_trainer(tmp_path / "off", max_iters=4, coarse=CoarseConfig(until=0.0))
+    assert not any(note.startswith("[coarse]") for note in off.notes())
 
 
 @pytest.mark.parametrize(
