@@ -421,8 +421,9 @@ def densify_statistics(
 ) -> StepStatistics | None:
     """A view's densification statistics (`densify.view_statistics`) under the lifecycle's
     config; `pixel_scale` is the size of the render's pixels in the view's own (a coarse
-    view's factor). A renderer that cannot measure the absolute gradient makes the run densify by
-    the gradient against its own threshold (`lifecycle.config` changes), said once."""
+    view's factor). A renderer that cannot measure the absolute gradient makes the run
+    densify by the gradient against its own threshold (`lifecycle.config` changes), said
+    once."""
     config = lifecycle.config
     if config.densify.absgrad and out.means2d_absgrad is None:
         densify = dataclasses.replace(config.densify, absgrad=False)
