@@ -33,7 +33,7 @@ from rich.console import Console
 from torch import Tensor
 
 from dyngs.config import TrainConfig
-from dyngs.datamanagers.datamanager import DataManager
+from dyngs.datamanagers.datamanager import DataManager, TrainBatch
 from dyngs.engine import schedules
 from dyngs.engine.densify import (
     DensifyState,
@@ -413,15 +413,13 @@ def largest_shares(
 def densify_statistics(
     lifecycle: Lifecycle,
     out: RenderOutput,
-    camera: Camera,
+    batch: TrainBatch,
     means_grad: Tensor | None,
-    time: float,
     views: int,
-    pixel_scale: float = 1.0,
 ) -> StepStatistics | None:
-    """A view's densification statistics (`densify.view_statistics`) under the lifecycle's
-    config; `pixel_scale` is the size of the render's pixels in the view's own (a coarse
-    view's factor). A renderer that cannot measure the absolute gradient makes the run
+    """The densification statistics (`densify.view_statistics`) of the view `batch` drawn
+    as `out`, under the lifecycle's config; a coarse view's radii are counted in its whole
+    view's pixels. A renderer that cannot measure the absolute gradient makes the run
     densify by the gradient against its own threshold (`lifecycle.config` changes), said
     once."""
     config = lifecycle.config
@@ -434,5 +432,7 @@ def densify_statistics(
             highlight=False,
             markup=False,
         )
-    return view_statistics(out, camera.width, camera.height, means_grad, time, views,
+    camera = batch.camera
+    pixel_scale = 1.0 if batch.full is None else batch.full.camera.width / camera.width
+    return view_statistics(out, camera.width, camera.height, means_grad, batch.time, views,
                            config.densify.absgrad, pixel_scale)  # fmt: skip

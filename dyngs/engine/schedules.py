@@ -20,9 +20,10 @@ from __future__ import annotations
 import dataclasses
 import math
 
-from dyngs.config import TrainConfig
+from dyngs.config import CoarseConfig, TrainConfig
 from dyngs.datamanagers.images import downscaled_size
 from dyngs.engine.optim import deformation_rate_scale
+from dyngs.types import Camera
 
 
 def length(config: TrainConfig) -> int:
@@ -103,14 +104,15 @@ def learning_progress(config: TrainConfig, step: int) -> tuple[float, float | No
     return progress, (at - full) / max(total - full, 1), scale
 
 
-def coarse_factor(config: TrainConfig, step: int, width: int, height: int) -> int:
-    """The factor a training view of width × height is shrunk by at `step`: `--coarse.factor`
+def coarse_factor(config: TrainConfig, step: int, camera: Camera) -> int:
+    """The factor a training view from `camera` is shrunk by at `step`: `--coarse.factor`
     while the schedule is within `--coarse.until` of the run and the shrunk view keeps
     `--coarse.min-side` pixels on its shorter side, else 1 (drawn whole)."""
     c = config.coarse
     if c.factor == 1 or position(config, step) >= c.until * length(config):
         return 1
-    return c.factor if min(downscaled_size(width, height, c.factor)) >= c.min_side else 1
+    size = downscaled_size(camera.width, camera.height, c.factor)
+    return c.factor if min(size) >= c.min_side else 1
 
 
 def refine_stop(config: TrainConfig) -> float:
@@ -234,6 +236,26 @@ def schedule_warning(config: TrainConfig) -> str | None:
             f"{refine_stop(config):g} (lower --densify.refine-start)"
         )
     return None
+
+
+def coarse_note(config: TrainConfig, cameras: list[Camera]) -> str | None:
+    """What `--coarse` does to the training views from `cameras`: how many are drawn
+    coarse; that none is, when the flags asked for something other than the default."""
+    c = config.coarse
+    if c.until == 0:
+        return None
+    coarse = sum(coarse_factor(config, 0, camera) > 1 for camera in cameras)
+    if coarse == 0:
+        if c == CoarseConfig():  # the default on a small scene: it trains as it did
+            return None
+        return (
+            f"[coarse] every training view is drawn whole: none keeps {c.min_side} px "
+            f"on its shorter side at 1/{c.factor} of its size (--coarse.min-side)"
+        )
+    return (
+        f"[coarse] {coarse} of {len(cameras)} training views are drawn at 1/{c.factor} of "
+        f"their size for the first {c.until:.0%} of the run, whole after it"
+    )
 
 
 def plan_notes(config: TrainConfig, sized: str | None) -> list[str | None]:

@@ -20,7 +20,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 from torch import Tensor
 
-from dyngs.config import CoarseConfig, TrainConfig
+from dyngs.config import TrainConfig
 from dyngs.configio import config_to_dict
 from dyngs.datamanagers.base import SceneData
 from dyngs.datamanagers.datamanager import DataManager, load_scene
@@ -266,8 +266,7 @@ class Trainer:
         (over the step's view count) sent backward, its densification statistics taken."""
         model, views = self.model, self.config.batch_views
         whole = self.data.train_batch(index)
-        factor = schedules.coarse_factor(self.config, step, whole.camera.width, whole.camera.height)
-        batch = whole.coarse(factor)
+        batch = whole.coarse(schedules.coarse_factor(self.config, step, whole.camera))
         started, t = time.perf_counter(), min(1.0, max(0.0, batch.time + shift))
         gaussians = model.at(t, sh_degree=probe, absent_below=self.objective.absent_below)
         self.counters.deformation_seconds += time.perf_counter() - started if model.deforms else 0
@@ -278,8 +277,7 @@ class Trainer:
         means_grad = backward_view(loss if views == 1 else loss / views, model.canonical.means)
         if means_grad is not None:  # as the step's gradient will be (quarantine_nonfinite…)
             means_grad = means_grad.masked_fill(~model.canonical.finite_rows()[:, None], 0.0)
-        stats = densify_statistics(self.lifecycle, out, batch.camera, means_grad, batch.time, views,
-                                   factor)  # fmt: skip
+        stats = densify_statistics(self.lifecycle, out, batch, means_grad, views)
         return ViewResult(loss.detach(), {k: v.detach() for k, v in terms.items()}, out, batch,
                           stats)  # fmt: skip
 
@@ -310,28 +308,8 @@ class Trainer:
         notes = [*schedules.plan_notes(cfg, sized), self.lifecycle.importance_note(self.renderer)]
         if cfg.losses.change_weight > 0:
             notes.append(self.objective.change_weight_note())
-        notes.append(self.coarse_note())
+        notes.append(schedules.coarse_note(cfg, [camera for camera, _ in self.data.train_poses()]))
         return [note for note in notes if note is not None]
-
-    def coarse_note(self) -> str | None:
-        """What `--coarse` does on this scene: how many training views are drawn coarse;
-        that none is, when the flags asked for something other than the default."""
-        c = self.config.coarse
-        if c.until == 0:
-            return None
-        sizes = [(camera.width, camera.height) for camera, _ in self.data.train_poses()]
-        coarse = sum(schedules.coarse_factor(self.config, 0, w, h) > 1 for w, h in sizes)
-        if coarse == 0:
-            if c == CoarseConfig():  # the default on a small scene: it trains as it did
-                return None
-            return (
-                f"[coarse] every training view is drawn whole: none keeps {c.min_side} px "
-                f"on its shorter side at 1/{c.factor} of its size (--coarse.min-side)"
-            )
-        return (
-            f"[coarse] {coarse} of {len(sizes)} training views are drawn at 1/{c.factor} of "
-            f"their size for the first {c.until:.0%} of the run, whole after it"
-        )
 
     def train(self) -> dict[str, Any]:
         for note in self.notes():

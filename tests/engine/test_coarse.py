@@ -9,11 +9,12 @@ from pathlib import Path
 import pytest
 import torch
 
-from dyngs.config import CoarseConfig, LossConfig
+from dyngs.config import CoarseConfig, LossConfig, TrainConfig
 from dyngs.datamanagers.datamanager import TrainBatch, area_resize
 from dyngs.datamanagers.procedural import demo_path
 from dyngs.engine import schedules
 from dyngs.engine.densify import view_statistics
+from dyngs.engine.lifecycle import densify_statistics
 from dyngs.engine.trainer import Trainer
 from dyngs.engine.writer import NullWriter
 from dyngs.errors import ConfigError
@@ -27,6 +28,10 @@ def _camera(width: int, height: int) -> Camera:
     return Camera(40.0, 42.0, width / 2, height / 2, torch.eye(4), width, height)
 
 
+def _factor(config: TrainConfig, step: int, width: int, height: int) -> int:
+    return schedules.coarse_factor(config, step, _camera(width, height))
+
+
 def _batch(width: int, height: int, masked: bool = True) -> TrainBatch:
     generator = torch.Generator().manual_seed(0)
     image = torch.rand(height, width, 3, generator=generator)
@@ -36,7 +41,7 @@ def _batch(width: int, height: int, masked: bool = True) -> TrainBatch:
 
 def test_the_schedule_shrinks_large_views_until_its_fraction_of_the_run() -> None:
     config = tiny_config(max_iters=100, coarse=CoarseConfig(until=0.3, factor=2, min_side=16))
-    factor = schedules.coarse_factor
+    factor = _factor
     assert [factor(config, step, 64, 40) for step in (0, 29, 30, 99)] == [2, 2, 1, 1]
     assert factor(config, 0, 64, 32) == 2  # 16 px left on the shorter side: enough
     assert factor(config, 0, 64, 30) == 1  # 15: too few, drawn whole
@@ -92,6 +97,18 @@ def test_radii_are_counted_in_the_views_own_pixels() -> None:
     assert torch.equal(scaled.grad_sum, plain.grad_sum)
 
 
+def test_a_training_steps_radii_are_counted_in_its_whole_views_pixels(tmp_path: Path) -> None:
+    trainer = tiny_trainer(tmp_path, max_iters=4, coarse=CoarseConfig(until=1.0, min_side=8))
+    stats = trainer.train_step(0)
+    assert stats.batch.full is not None
+    coarse = densify_statistics(trainer.lifecycle, stats.out, stats.batch, None, 1)
+    as_whole = densify_statistics(trainer.lifecycle, stats.out,
+                                  dataclasses.replace(stats.batch, full=None), None, 1)  # fmt: skip
+    assert coarse is not None and as_whole is not None
+    assert float(as_whole.max_radius.max()) > 0
+    assert torch.equal(coarse.max_radius, 2 * as_whole.max_radius)
+
+
 def test_a_coarse_view_takes_the_whole_views_change_weights_shrunk(tmp_path: Path) -> None:
     config = tiny_config(data=str(demo_path(RIG)), losses=LossConfig(change_weight=4.0))
     trainer = Trainer(config, tmp_path, NullWriter())
@@ -121,7 +138,7 @@ def test_small_views_are_drawn_whole_and_the_run_says_why(tmp_path: Path) -> Non
 
 
 def test_by_default_only_large_views_are_drawn_coarse() -> None:
-    config, factor = tiny_config(max_iters=100), schedules.coarse_factor
+    config, factor = tiny_config(max_iters=100), _factor
     assert (factor(config, 0, 480, 270), factor(config, 0, 128, 128)) == (2, 1)
     assert factor(config, 30, 480, 270) == 1  # the first 30 % only
 
