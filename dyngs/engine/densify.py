@@ -77,6 +77,11 @@ class DensifyConfig:
     them when fewer; spread evenly over time), without gradient, and prune by the largest
     share each Gaussian makes of any of them. 0: only the views drawn since the last
     refinement count, which miss some of the window's views (docs/CAPACITY.md)."""
+    importance_factor: int = 2
+    """Those views are rendered at 1/this of their size where they keep `--coarse.min-side`
+    pixels on their shorter side (the small scenes never shrink), and each Gaussian's share
+    is counted in whole-view pixels. The pass draws 100 views before every refinement;
+    whole, it took a fifth of hfu-3cam's budgeted training (docs/CAPACITY.md). 1: whole."""
     max_gaussians: int | None = None
     """The Gaussian budget: densification never goes beyond it (highest gradients first). The
     cap grows linearly toward it over the densification window. None: sized from the data
@@ -86,6 +91,10 @@ class DensifyConfig:
         if self.importance_views < 0:
             raise ConfigError(
                 f"--densify.importance-views must be ≥ 0, got {self.importance_views}"
+            )
+        if self.importance_factor < 1:
+            raise ConfigError(
+                f"--densify.importance-factor must be ≥ 1, got {self.importance_factor}"
             )
         if self.pause_after_reset < 0:
             raise ConfigError(

@@ -221,7 +221,8 @@ class Lifecycle:
         window = schedules.time_window(cfg, step)
         poses = self.data.train_poses(window, cfg.densify.importance_views)
         mine = self.group.share(poses)  # every pose, with one process
-        largest_shares(self.model, renderer, mine, self.data.background, importance)
+        shrink = [(schedules.importance_factor(cfg, camera), camera, t) for camera, t in mine]
+        largest_shares(self.model, renderer, shrink, self.data.background, importance)
         self.group.max_([importance])
         return importance
 
@@ -395,19 +396,25 @@ def crop_field(model: DynamicGaussians, optimizer: torch.optim.Optimizer) -> str
 def largest_shares(
     model: DynamicGaussians,
     renderer: ContributionRenderer,
-    poses: list[tuple[Camera, float]],
+    poses: list[tuple[int, Camera, float]],
     background: Tensor,
     importance: Tensor,
 ) -> None:
-    """Raise `importance` in place to each Gaussian's share of every pose's view. The poses
-    come in time order: the views of one time (its cameras) share one deformation."""
+    """Raise `importance` in place to each Gaussian's share of every pose's view, in the
+    whole view's pixels. A pose (factor, camera, t) is rendered at 1/factor of the camera's
+    size, its shares scaled by the pixels it stands for. The poses come in time order: the
+    views of one time (its cameras) share one deformation."""
     drawn: tuple[float, Gaussians] | None = None
-    for camera, t in poses:
+    for factor, camera, t in poses:
         if drawn is None or drawn[0] != t:
             drawn = (t, model.at(t, absent_below=ABSENT_BELOW))
-        out = renderer.with_contribution(drawn[1], camera, background)
+        view = camera if factor == 1 else camera.scaled(1.0 / factor)
+        out = renderer.with_contribution(drawn[1], view, background)
         assert out.contribution is not None
-        torch.maximum(importance, out.contribution.to(importance.dtype), out=importance)
+        share = out.contribution.to(importance.dtype)
+        if view is not camera:
+            share = share * (camera.width * camera.height / (view.width * view.height))
+        torch.maximum(importance, share, out=importance)
 
 
 def densify_statistics(

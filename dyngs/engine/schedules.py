@@ -109,10 +109,25 @@ def coarse_factor(config: TrainConfig, step: int, camera: Camera) -> int:
     while the schedule is within `--coarse.until` of the run and the shrunk view keeps
     `--coarse.min-side` pixels on its shorter side, else 1 (drawn whole)."""
     c = config.coarse
-    if c.factor == 1 or position(config, step) >= c.until * length(config):
+    if position(config, step) >= c.until * length(config):
         return 1
-    size = downscaled_size(camera.width, camera.height, c.factor)
-    return c.factor if min(size) >= c.min_side else 1
+    return _shrinks(camera, c.factor, c.min_side)
+
+
+def importance_factor(config: TrainConfig, camera: Camera) -> int:
+    """The factor an importance view (`--densify.importance-views`) from `camera` is
+    rendered shrunk by: `--densify.importance-factor` where the shrunk view keeps
+    `--coarse.min-side` pixels on its shorter side, as a coarse view must, else 1."""
+    return _shrinks(camera, config.densify.importance_factor, config.coarse.min_side)
+
+
+def _shrinks(camera: Camera, factor: int, min_side: int) -> int:
+    """`factor` if a view from `camera` shrunk by it keeps `min_side` pixels on its shorter
+    side, else 1."""
+    if factor == 1:
+        return 1
+    size = downscaled_size(camera.width, camera.height, factor)
+    return factor if min(size) >= min_side else 1
 
 
 def refine_stop(config: TrainConfig) -> float:
