@@ -80,8 +80,9 @@ class DensifyConfig:
     importance_factor: int = 2
     """Those views are rendered at 1/this of their size where they keep `--coarse.min-side`
     pixels on their shorter side (the small scenes never shrink), and each Gaussian's share
-    is counted in whole-view pixels. The pass draws 100 views before every refinement;
-    whole, it took a fifth of hfu-3cam's budgeted training (docs/CAPACITY.md). 1: whole."""
+    is counted in whole-view pixels: the same sum of blending weights, estimated on a
+    quarter of the pixels. On a real capture the whole views made the pass a large share
+    of a budgeted run's time (docs/CAPACITY.md). 1: whole."""
     max_gaussians: int | None = None
     """The Gaussian budget: densification never goes beyond it (highest gradients first). The
     cap grows linearly toward it over the densification window. None: sized from the data

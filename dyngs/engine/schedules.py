@@ -111,17 +111,17 @@ def coarse_factor(config: TrainConfig, step: int, camera: Camera) -> int:
     c = config.coarse
     if position(config, step) >= c.until * length(config):
         return 1
-    return _shrinks(camera, c.factor, c.min_side)
+    return _shrink_factor(camera, c.factor, c.min_side)
 
 
 def importance_factor(config: TrainConfig, camera: Camera) -> int:
     """The factor an importance view (`--densify.importance-views`) from `camera` is
     rendered shrunk by: `--densify.importance-factor` where the shrunk view keeps
     `--coarse.min-side` pixels on its shorter side, as a coarse view must, else 1."""
-    return _shrinks(camera, config.densify.importance_factor, config.coarse.min_side)
+    return _shrink_factor(camera, config.densify.importance_factor, config.coarse.min_side)
 
 
-def _shrinks(camera: Camera, factor: int, min_side: int) -> int:
+def _shrink_factor(camera: Camera, factor: int, min_side: int) -> int:
     """`factor` if a view from `camera` shrunk by it keeps `min_side` pixels on its shorter
     side, else 1."""
     if factor == 1:
