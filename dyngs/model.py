@@ -23,6 +23,7 @@ import torch
 from jaxtyping import Bool, Float, Int
 from torch import Tensor, nn
 
+from dyngs.appearance import CameraColours
 from dyngs.errors import ConfigError
 from dyngs.fields.base import Field, FieldSpec, Head, HeadSpec
 from dyngs.fields.heads import Deltas
@@ -30,7 +31,7 @@ from dyngs.geometry import normalize_quaternion, quaternion_multiply, quaternion
 from dyngs.neighbors import knn
 from dyngs.ops import finite_rows
 from dyngs.sh import num_sh_bases, rgb_to_sh0
-from dyngs.types import Gaussians, SceneBox
+from dyngs.types import Camera, Gaussians, SceneBox
 
 _EXTRA = "_extra_state"
 """The state_dict key of `DynamicGaussians.get_extra_state` (PyTorch's convention)."""
@@ -347,12 +348,15 @@ class DynamicGaussians(nn.Module):
     `deforming` whether the deformation is on (off during the static warm-up); both are
     saved in the state_dict with the scene box, so `at(t)` draws what training drew.
     `filter_std` is each Gaussian's 3D smoothing filter (`smooth_3d`; zero: none), a
-    buffer for the same reason.
+    buffer for the same reason. `colours` is the capture's per-camera colour
+    (`dyngs.appearance`; None until the trainer gives the model its cameras'), which
+    training and evaluation apply to each camera's render (`camera_colour`).
     """
 
     dynamic: Tensor
     filter_std: Tensor
     field: Field
+    colours: CameraColours | None
 
     def __init__(self, canonical: CanonicalGaussians, field: Field, head: Head, box: SceneBox):
         super().__init__()
@@ -362,6 +366,7 @@ class DynamicGaussians(nn.Module):
         self.box = box
         self.register_buffer("dynamic", torch.ones(len(canonical), dtype=torch.bool))
         self.register_buffer("filter_std", torch.zeros(len(canonical)))
+        self.register_module("colours", None)
         self.active_sh_degree = 0
         self.deforming = True
 
@@ -400,6 +405,8 @@ class DynamicGaussians(nn.Module):
         box = SceneBox(tuple(lower), tuple(upper))
         num = state["canonical.means"].shape[0]
         model = cls.build(gaussians, field, head, box, num, torch.Generator().manual_seed(0))
+        if (centres := state.get("colours.centres")) is not None:
+            model.colours = CameraColours(centres)
         model.load_state_dict(state)
         return model
 
@@ -489,6 +496,11 @@ class DynamicGaussians(nn.Module):
             raw["opacity_logits"] = add(c.opacity_logits, d.opacities)
             raw["sh_dc"] = add(c.sh_dc, None if d.colors is None else d.colors[:, None, :])
         return raw
+
+    def camera_colour(self, rgb: Float[Tensor, "H W 3"], camera: Camera) -> Float[Tensor, "H W 3"]:
+        """`rgb`, a render through `camera`, in that camera's colour (`colours`); as it is
+        for a model without per-camera colours."""
+        return rgb if self.colours is None else self.colours(rgb, camera)
 
     def at(
         self,

@@ -24,7 +24,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
         ),
     ),
     ("components", ("dyngs.renderers", "dyngs.fields", "dyngs.losses", "dyngs.datamanagers",
-                    "dyngs.metrics")),
+                    "dyngs.metrics", "dyngs.appearance")),
     ("model", ("dyngs.model",)),
     ("engine", ("dyngs.engine", "dyngs.config", "dyngs.configio")),
     ("runs", ("dyngs.methods", "dyngs.runs")),

@@ -83,7 +83,8 @@ def evaluate(
         task = progress.add_task(f"evaluate {split}", total=len(views))
         for i, (view, (render_ms, deformation_ms)) in enumerate(zip(views, timings, strict=True)):
             drawn = model.at(view.time, absent_below=ABSENT_BELOW)
-            rgb = renderer(drawn, view.camera, background).rgb.clamp(0, 1)
+            rgb = model.camera_colour(renderer(drawn, view.camera, background).rgb, view.camera)
+            rgb = rgb.clamp(0, 1)
             frame = {"index": i, "time": view.time, **scorer(i, rgb, view.image)}
             frames.append(frame | {"render_ms": render_ms, "deformation_ms": deformation_ms})
             if image_dir is not None:

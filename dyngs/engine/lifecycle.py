@@ -138,11 +138,13 @@ class Lifecycle:
     def render(
         self, renderer: Renderer, gaussians: Gaussians, camera: Camera, background: Tensor
     ) -> RenderOutput:
-        """A training step's render, measuring contributions when pruning reads them each
-        step (`measures_each_step`)."""
+        """A training step's render, in the colours of `camera` (`CameraColours`),
+        measuring contributions when pruning reads them each step (`measures_each_step`)."""
         if self.measures_each_step(renderer) and isinstance(renderer, ContributionRenderer):
-            return renderer.with_contribution(gaussians, camera, background)
-        return renderer(gaussians, camera, background)
+            out = renderer.with_contribution(gaussians, camera, background)
+        else:
+            out = renderer(gaussians, camera, background)
+        return dataclasses.replace(out, rgb=self.model.camera_colour(out.rgb, camera))
 
     def gather(self, stats: StepStatistics | None, probe: int | None) -> None:
         """Add a good step's statistics, of every view of every rank (before Adam steps)."""

@@ -71,6 +71,12 @@ class OptimConfig:
     over every parameter, where the per-tensor Adam (`--optim.no-fused`, its reference)
     does Python and scalar work per parameter and took about three times as long
     (docs/TRAINING.md). The two agree up to float32 rounding."""
+    camera_colours: float = 1e-3
+    """Per-camera colour (`dyngs.appearance`): the rate of each camera's log-gains and
+    offsets, for every camera of a capture of photographs that training sees at three or
+    more times (RGBA renders get none). Ten times Dynamic 3D Gaussians' 1e-4 (Luiten et
+    al. 2024), whose first frame alone trains 10 000 steps. 0: no per-camera colour,
+    every camera draws the Gaussians as they are."""
     hold_deformation_rates: bool = False
     """Hold the field's and the head's rates (`grid`, `network`) at their start while the
     training views' time window widens (`--time-ramp`), and decay them over the rest of
@@ -82,6 +88,8 @@ class OptimConfig:
             raise ConfigError(
                 f"--optim.deformation-steps must be ≥ 1 or None, got {self.deformation_steps}"
             )
+        if not self.camera_colours >= 0.0:  # NaN fails too
+            raise ConfigError(f"--optim.camera-colours must be ≥ 0, got {self.camera_colours}")
         if not 0.0 < self.deformation_floor <= 1.0:
             raise ConfigError(
                 f"--optim.deformation-floor must be in (0, 1], got {self.deformation_floor}"
@@ -125,6 +133,8 @@ def build_optimizer(
     grid, network = DEFORMATION_GROUPS
     group(grid, [p for p in deformation if _is_grid(p)], *config.grid)
     group(network, [p for p in deformation if not _is_grid(p)], *config.network)
+    if model.colours is not None:
+        group("camera_colours", list(model.colours.parameters()), config.camera_colours)
     params = [p for g in groups for p in g["params"]]
     fused = config.fused and _fusable(params)
     return torch.optim.Adam(groups, lr=0.0, eps=config.eps, fused=fused)

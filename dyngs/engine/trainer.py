@@ -20,6 +20,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 from torch import Tensor
 
+from dyngs.appearance import CameraColours
 from dyngs.config import TrainConfig
 from dyngs.configio import config_to_dict
 from dyngs.datamanagers.base import SceneData
@@ -98,6 +99,8 @@ def initial_model(
     )
     model.canonical.initialize(points, colors, config.gaussians, lifetimes)
     model.deforming = schedules.deforming(config, 0)
+    if config.optim.camera_colours > 0:
+        model.colours = CameraColours.for_split(scene.train)
     return model
 
 
@@ -306,9 +309,9 @@ class Trainer:
             return []
         sized = training_steps_why(self.scene) if self.sized_steps else None
         notes = [*schedules.plan_notes(cfg, sized), self.lifecycle.importance_note(self.renderer)]
-        if cfg.losses.change_weight > 0:
-            notes.append(self.objective.change_weight_note())
+        notes.append(self.objective.change_weight_note() if cfg.losses.change_weight > 0 else None)
         notes.append(schedules.coarse_note(cfg, [camera for camera, _ in self.data.train_poses()]))
+        notes.append(self.model.colours.note() if self.model.colours is not None else None)
         return [note for note in notes if note is not None]
 
     def train(self) -> dict[str, Any]:

@@ -204,10 +204,12 @@ def camera_path(run: LoadedRun, config: RenderConfig) -> list[tuple[Camera, floa
 
 @torch.no_grad()
 def render_frame(run: LoadedRun, camera: Camera, t: float) -> UInt8[np.ndarray, "H W 3"]:
-    """One frame of the video: the run's model at time t through `camera`, 8-bit RGB."""
+    """One frame of the video: the run's model at time t through `camera`, 8-bit RGB, in
+    that camera's colours where it is one of the capture's (`CameraColours`)."""
     background = run.scene.background.to(run.device, torch.float32)
     drawn = run.model.at(t, absent_below=ABSENT_BELOW)
-    return to_uint8(run.renderer(drawn, camera.to(run.device), background).rgb)
+    rgb = run.renderer(drawn, camera.to(run.device), background).rgb
+    return to_uint8(run.model.camera_colour(rgb, camera))
 
 
 @torch.no_grad()
