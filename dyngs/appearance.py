@@ -5,8 +5,8 @@ camera to the next, so a surface that several cameras see has several colours. W
 way to say so, the Gaussians must draw one compromise for all of them, or spend their
 view-dependent colour on it. Dynamic 3D Gaussians (Luiten et al. 2024) learn, for each
 camera c, a scale and an offset of the rendered image, `exp(m_c)·rgb + b_c`; so does this
-module, for each viewpoint that training sees at `MIN_VIEWS` or more times (a camera that
-stays put): a view of its own would only let its colour absorb that view's error. Images
+module, for each camera that stays put (seen by training at three or more times): a view
+of its own would only let its colour absorb that view's error. Images
 rendered with an alpha channel (synthetic scenes) get none: one virtual camera drew them.
 
 The gains and offsets are centred over the cameras before use, so the average camera
@@ -18,19 +18,13 @@ Letters: C cameras, H×W image.
 
 from __future__ import annotations
 
-from collections import Counter
-from collections.abc import Sequence
-
 import torch
 from jaxtyping import Float
 from torch import Tensor, nn
 
 from dyngs.datamanagers.base import Split
+from dyngs.datamanagers.fixed_cameras import fixed_camera_groups
 from dyngs.types import Camera
-
-MIN_VIEWS = 3
-"""Training views from one viewpoint for it to get a colour of its own: the count from
-which `fixed_cameras` calls a camera fixed."""
 
 DECIMALS = 3
 """Camera centres are matched to this many decimals (`Camera.viewpoint`)."""
@@ -51,24 +45,20 @@ class CameraColours(nn.Module):
         self._rows: dict[tuple[float, ...], int] | None = None
 
     @classmethod
-    def for_cameras(cls, cameras: Sequence[Camera]) -> CameraColours | None:
-        """One colour per viewpoint that `cameras` (the training views') show at least
-        `MIN_VIEWS` times, in the order they first appear; None when fewer than two do
-        (one camera's colour is the scene's own)."""
-        counts = Counter(camera.viewpoint(DECIMALS) for camera in cameras)
-        kept = [key for key, views in counts.items() if views >= MIN_VIEWS]
-        if len(kept) < 2:
-            return None
-        return cls(torch.tensor(kept, dtype=torch.float64))
-
-    @classmethod
     def for_split(cls, split: Split) -> CameraColours | None:
-        """`for_cameras` of a training split of photographs; None for RGBA renders (images
-        with an alpha channel), which one virtual camera drew: no camera's colour differs,
-        and on mujoco-texture a colour per camera took 1.1 dB in one seed (docs/ACCURACY.md)."""
+        """One colour per fixed camera of a training split of photographs
+        (`fixed_camera_groups`: the same camera at three or more times), by centre, in the
+        order they first appear. None for RGBA renders (images with an alpha channel),
+        which one virtual camera drew, so no camera's colour differs (docs/ACCURACY.md
+        measures what colours cost them), and None when fewer than two cameras are fixed
+        (one camera's colour is the scene's own)."""
         if split.masks is not None and split.mask_kind == "alpha":
             return None
-        return cls.for_cameras(split.cameras)
+        groups = fixed_camera_groups(split)
+        centres = dict.fromkeys(split.cameras[views[0]].viewpoint(DECIMALS) for views in groups)
+        if len(centres) < 2:
+            return None
+        return cls(torch.tensor(list(centres), dtype=torch.float64))
 
     def note(self) -> str:
         """What the run says of them."""
@@ -83,10 +73,7 @@ class CameraColours(nn.Module):
     def row(self, camera: Camera) -> int | None:
         """The row of `camera`'s viewpoint, or None for a camera not among the centres."""
         if self._rows is None:
-            self._rows = {
-                tuple(round(float(v), DECIMALS) for v in centre): i
-                for i, centre in enumerate(self.centres.cpu())
-            }
+            self._rows = {tuple(centre): i for i, centre in enumerate(self.centres.tolist())}
         return self._rows.get(camera.viewpoint(DECIMALS))
 
     def forward(self, rgb: Float[Tensor, "H W 3"], camera: Camera) -> Float[Tensor, "H W 3"]:

@@ -11,6 +11,7 @@ import torch
 
 from dyngs.appearance import CameraColours
 from dyngs.config import TrainConfig
+from dyngs.datamanagers.base import Split
 from dyngs.datamanagers.datamanager import load_scene
 from dyngs.datamanagers.procedural import ProceduralSceneConfig, demo_path
 from dyngs.engine.evaluate import evaluate
@@ -31,17 +32,24 @@ def _camera(x: float) -> Camera:
     return Camera(20.0, 20.0, 8.0, 8.0, world_to_camera, 16, 16)
 
 
+def _photographs(xs: list[float]) -> Split:
+    """A training split of photographs, one view at each of len(xs) times, from cameras
+    centred at (x, 0, 0)."""
+    images = [torch.zeros(16, 16, 3, dtype=torch.uint8) for _ in xs]
+    times = torch.linspace(0, 1, len(xs))
+    return Split(cameras=[_camera(x) for x in xs], times=times, images=images)
+
+
 def test_only_cameras_seen_three_times_get_a_colour() -> None:
-    cameras = [_camera(x) for x in (0, 1, 0, 2, 0, 1, 1, 3, 2)]  # 0 and 1: three views
-    colours = CameraColours.for_cameras(cameras)
+    colours = CameraColours.for_split(_photographs([0, 1, 0, 2, 0, 1, 1, 3, 2]))  # 0, 1: thrice
     assert colours is not None
     assert colours.centres.tolist() == [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]
     assert [colours.row(_camera(x)) for x in (0, 1, 2, 3)] == [0, 1, None, None]
 
 
 def test_a_moving_camera_gets_none_nor_does_a_single_fixed_one() -> None:
-    assert CameraColours.for_cameras([_camera(0.1 * i) for i in range(20)]) is None
-    assert CameraColours.for_cameras([_camera(0.0)] * 5 + [_camera(1.0)]) is None
+    assert CameraColours.for_split(_photographs([0.1 * i for i in range(20)])) is None
+    assert CameraColours.for_split(_photographs([0.0] * 5 + [1.0])) is None
 
 
 def test_a_camera_draws_in_its_colour_centred_over_the_cameras() -> None:
