@@ -158,7 +158,7 @@ class Lifecycle:
     def after_step(self, step: int, optimizer: torch.optim.Optimizer, renderer: Renderer) -> None:
         """Everything due once `step` steps are done (see the module docstring)."""
         cfg = self.config
-        self.motion.after_step(step, self.state)
+        self.motion.after_step(step, self.state, optimizer)
         self.consider_sh_degree(step)
         if schedules.is_filter_step(cfg, step):
             self.refresh_filter()
@@ -301,20 +301,21 @@ class MotionSplit:
         fixed = self.data.fixed_cameras
         return None if fixed is None else FixedCameraMotion.of(self.data.scene.train, fixed=fixed)
 
-    def after_step(self, step: int, state: DensifyState) -> None:
+    def after_step(self, step: int, state: DensifyState, optimizer: torch.optim.Optimizer) -> None:
         """Whatever the split has due once `step` steps are done."""
         cfg, model = self.config, self.model
         if schedules.is_motion_step(cfg, step):
             self.revisit(step, state)
         elif schedules.is_pixel_start(cfg, step) and self.fixed_motion is not None:
-            self.start_from_pixels(step)
+            self.start_from_pixels(step, optimizer)
         elif schedules.is_promotion_step(cfg, step) and not bool(model.dynamic.all()):
             self.revisit(step, state, demote=False)
 
-    def start_from_pixels(self, step: int) -> None:
+    def start_from_pixels(self, step: int, optimizer: torch.optim.Optimizer) -> None:
         """End of the warm-up: only the Gaussians that most of the fixed cameras that see
         them see change stay dynamic. The field has not been trained yet, so the others
-        lose no deformation by turning static. The pixel test reads what each Gaussian's
+        lose no deformation by turning static, and the field is cut to the dynamic ones
+        (`--motion.start-crop`). The pixel test reads what each Gaussian's
         pixel shows, so it needs Gaussians on the surfaces: from random points or a cloud
         nobody checked, every Gaussian stays dynamic (from mujoco-collision's noise cloud
         the pixels started 0.1 % dynamic, and the run ended 4.6 dB lower)."""
@@ -334,6 +335,9 @@ class MotionSplit:
             f"[motion] fixed cameras: {share:.1%} of the Gaussians sit where pixels change and "
             "start dynamic; the rest start static, promoted when they move"
         )
+        trim = self.config.motion.start_crop
+        if trim is not None and (said := crop_field(model, optimizer, trim)):
+            self.say(said)
 
     def revisit(
         self, step: int, state: DensifyState, final: bool = False, demote: bool = True
@@ -374,22 +378,25 @@ class MotionSplit:
             )
 
 
-def crop_field(model: DynamicGaussians, optimizer: torch.optim.Optimizer) -> str | None:
-    """Cut the field to the span of the Gaussians that query it, once they stop moving
-    (the end of training); Adam's moments are cut alike, so a resumed run goes on.
-    Returns what to say of it (None: nothing was cut)."""
+def crop_field(
+    model: DynamicGaussians, optimizer: torch.optim.Optimizer, trim: float = 0.0
+) -> str | None:
+    """Cut the field to the span of the Gaussians that query it (`trim`: between those
+    quantiles of each axis; `Croppable.crop_to`); Adam's moments are cut alike, so a
+    resumed run goes on. Returns what to say of it (None: nothing was cut)."""
     field = model.field
     if not isinstance(field, Croppable) or not model.any_dynamic():
         return None
     before = model_bytes(model)
     old = list(field.parameters())
     with torch.no_grad():
-        remap = field.crop_to(model.canonical.means[model.dynamic])
+        remap = field.crop_to(model.canonical.means[model.dynamic], trim)
     if remap is None:
         return None
     replace_params(optimizer, old, list(field.parameters()), remap)
+    quantiles = f" ({100 * trim:g}-{100 - 100 * trim:g} % along each axis)" if trim > 0 else ""
     return (
-        f"[motion] field cut to the span of the dynamic Gaussians: model "
+        f"[motion] field cut to the span of the dynamic Gaussians{quantiles}: model "
         f"{before / 2**20:.2f} → {model_bytes(model) / 2**20:.2f} MiB"
     )
 

@@ -82,12 +82,22 @@ class MotionConfig:
     crop_field: bool = True
     """At the end of training, cut the field's planes to the span of the dynamic Gaussians
     (the only ones that query it): same features where they sit, no storage elsewhere."""
+    start_crop: float | None = 0.005
+    """When the split starts from the pixels (`start_from_pixels`), before the field has
+    learned anything, cut its planes to the dynamic Gaussians between this quantile and
+    its complement along each axis; the few beyond (a moving pixel's background, seen
+    behind what moves) draw the kept span's border values. The regularizers count their
+    terms on the whole planes, so each kept cell is regularized as before, and a step no
+    longer pays for the planes' empty room (on a real capture the field spans the room,
+    the motion a corner of it). None keeps the field whole until the end."""
 
     def __post_init__(self) -> None:
         if self.every < 1 or self.samples < 2:
             raise ConfigError("--motion.every must be ≥ 1 and --motion.samples ≥ 2")
         if self.static_pixels < 0 or self.static_opacity < 0 or self.pixel_change < 0:
             raise ConfigError("--motion thresholds must be ≥ 0")
+        if self.start_crop is not None and not 0 <= self.start_crop < 0.5:
+            raise ConfigError(f"--motion.start-crop must be in [0, 0.5), got {self.start_crop}")
 
 
 @dataclass

@@ -72,13 +72,15 @@ def plane_terms(weights: LossConfig, planes: PlaneGrids) -> dict[str, Tensor]:
         return _compiled_plane_terms(weights, planes)
     terms: dict[str, Tensor] = {}
     if weights.plane_tv > 0 and planes.spatial:
-        terms["plane_tv"] = weights.plane_tv * plane_tv(planes.spatial)
+        terms["plane_tv"] = weights.plane_tv * plane_tv(planes.spatial, planes.spatial_whole)
     if weights.plane_roughness > 0 and planes.spatial:
         terms["plane_roughness"] = weights.plane_roughness * plane_roughness(planes.spatial)
     if weights.time_smoothness > 0 and planes.temporal:
-        terms["time_smoothness"] = weights.time_smoothness * time_smoothness(planes.temporal)
+        smoothness = time_smoothness(planes.temporal, planes.temporal_whole)
+        terms["time_smoothness"] = weights.time_smoothness * smoothness
     if weights.time_l1 > 0 and planes.temporal:
-        terms["time_l1"] = weights.time_l1 * time_l1_to_static(planes.temporal)
+        pull = time_l1_to_static(planes.temporal, planes.temporal_whole)
+        terms["time_l1"] = weights.time_l1 * pull
     return terms
 
 
@@ -90,7 +92,11 @@ def _compiled_plane_terms(weights: LossConfig, planes: PlaneGrids) -> dict[str, 
     temporal = planes.temporal_groups if timed else []
     if not spatial and not temporal:
         return {}
-    tv, smoothness, l1 = compiled_planes.plane_values(spatial, temporal)
+    whole = (
+        planes.spatial_groups_whole if spatial else None,
+        planes.temporal_groups_whole if temporal else None,
+    )
+    tv, smoothness, l1 = compiled_planes.plane_values(spatial, temporal, *whole)
     terms: dict[str, Tensor] = {}
     if spatial:
         terms["plane_tv"] = weights.plane_tv * tv

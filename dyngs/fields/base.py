@@ -42,6 +42,16 @@ class PlaneGrids:
     where a plane view's gradient is a zero-filled group-sized tensor of its own."""
     temporal_groups: list[Tensor] = field(default_factory=list)
     """Optional: the time planes so, as `spatial_groups`."""
+    spatial_whole: list[tuple[int, int]] = field(default_factory=list)
+    """Optional: each spatial plane's [R1, R0] before the field was cut to what queries it
+    (`Croppable`). The regularizers count their terms on these sizes, so cutting a plane
+    leaves each kept cell's share of them unchanged. Empty: the planes as they are."""
+    temporal_whole: list[tuple[int, int]] = field(default_factory=list)
+    """Optional: the time planes' [T, R] so, as `spatial_whole`."""
+    spatial_groups_whole: list[tuple[int, int]] = field(default_factory=list)
+    """Optional: `spatial_whole` in the order of the planes in `spatial_groups`."""
+    temporal_groups_whole: list[tuple[int, int]] = field(default_factory=list)
+    """Optional: `temporal_whole` in the order of the planes in `temporal_groups`."""
 
 
 class Field(Protocol):
@@ -69,13 +79,16 @@ class FieldSpec(Protocol):
 
 @runtime_checkable
 class Croppable(Protocol):
-    """A field that can drop the storage no Gaussian queries (`crop_to`): used at the end
-    of training to cut the field to the span of the dynamic Gaussians."""
+    """A field that can drop the storage no Gaussian queries (`crop_to`): used when a
+    fixed-camera capture's split starts from its pixels, to cut the field to the span of
+    the dynamic Gaussians before it is trained, and at the end of training."""
 
     def crop_to(
-        self, xyz: Float[Tensor, "N 3"]
+        self, xyz: Float[Tensor, "N 3"], trim: float = 0.0
     ) -> Callable[[Sequence[Tensor]], list[Tensor]] | None:
-        """Keep what sampling at `xyz` reads. Returns the map that carries tensors laid out
+        """Keep what sampling at `xyz` reads (with `trim` > 0, at the points within the
+        `trim` and 1 − `trim` quantiles of each axis; those beyond it draw its border's
+        values). Returns the map that carries tensors laid out
         like the old parameters (Adam's moments) to the new layout, or None when nothing
         could be cut."""
         ...

@@ -207,6 +207,9 @@ class HexPlaneField(nn.Module):
                     data.uniform_(low, high, generator=generator)
                 scale.append(data)
             planes.append(scale)
+        # Each plane's [R_b, R_a] before any crop: the regularizers' terms are counted on
+        # these, so that cutting the planes leaves each kept cell's share of them as it was.
+        self._whole = [[(p.shape[1], p.shape[2]) for p in scale] for scale in planes]
         self.grids = nn.ParameterList()
         self._assemble(planes)
         # The box-normalised span [lo, hi] of x, y and z that each scale's planes cover:
@@ -260,9 +263,12 @@ class HexPlaneField(nn.Module):
         return torch.cat((xyz, coords[:, 3:]), dim=1)
 
     def crop_to(
-        self, xyz: Float[Tensor, "N 3"]
+        self, xyz: Float[Tensor, "N 3"], trim: float = 0.0
     ) -> Callable[[Sequence[Tensor]], list[Tensor]] | None:
-        """Keep, at every scale, only the grid nodes that bilinear sampling at `xyz` reads.
+        """Keep, at every scale, only the grid nodes that bilinear sampling at `xyz` reads
+        (with `trim` > 0: at the points between the `trim` and 1 − `trim` quantiles of each
+        axis; those beyond are clamped to the kept span's faces, as points beyond the box
+        are to its faces).
 
         The field then costs storage only where the Gaussians that query it are (the
         dynamic ones: static Gaussians never query it), and its value at every point inside
@@ -276,7 +282,11 @@ class HexPlaneField(nn.Module):
         if len(xyz) == 0:
             return None
         space = self.normalize(xyz, xyz.new_zeros(1, 1))[:, :3]
-        wanted = torch.stack((space.min(0).values, space.max(0).values))
+        if trim > 0:
+            ends = torch.tensor([trim, 1.0 - trim], dtype=space.dtype, device=space.device)
+            wanted = torch.quantile(space, ends, dim=0)
+        else:
+            wanted = torch.stack((space.min(0).values, space.max(0).values))
         nodes: list[list[tuple[int, int]]] = []
         for s in range(len(self._groups)):
             position = self._node_positions(s, wanted)
@@ -361,12 +371,26 @@ class HexPlaneField(nn.Module):
             for plane, (index, slot) in enumerate(where):
                 view = self.grids[index][slot]
                 (spatial if plane < _SPATIAL_PLANES else temporal).append(view)
+        whole: tuple[list[tuple[int, int]], list[tuple[int, int]]] = ([], [])
+        for sizes in self._whole:
+            for plane, size in enumerate(sizes):
+                whole[plane >= _SPATIAL_PLANES].append(size)
+        # The same, plane by plane as the groups hold them.
+        at = {place: (s, plane) for s, where in enumerate(self._where)
+              for plane, place in enumerate(where)}  # fmt: skip
         stacked: tuple[list[Tensor], list[Tensor]] = ([], [])  # spatial, temporal
+        stacked_whole: tuple[list[tuple[int, int]], list[tuple[int, int]]] = ([], [])
         for groups in self._groups:
             for index, _, is_time in groups:
                 stacked[is_time].append(self.grids[index])
-        return PlaneGrids(spatial=spatial, temporal=temporal, spatial_groups=stacked[0],
-                          temporal_groups=stacked[1])  # fmt: skip
+                for slot in range(len(self.grids[index])):
+                    s, plane = at[(index, slot)]
+                    stacked_whole[is_time].append(self._whole[s][plane])
+        return PlaneGrids(
+            spatial=spatial, temporal=temporal, spatial_groups=stacked[0],
+            temporal_groups=stacked[1], spatial_whole=whole[0], temporal_whole=whole[1],
+            spatial_groups_whole=stacked_whole[0], temporal_groups_whole=stacked_whole[1],
+        )  # fmt: skip
 
     def extra_repr(self) -> str:
         c = self.config

@@ -34,11 +34,18 @@ def usable(groups: list[Tensor]) -> bool:
     )  # fmt: skip
 
 
-def plane_values(spatial: list[Tensor], temporal: list[Tensor]) -> Tensor:
+def plane_values(
+    spatial: list[Tensor],
+    temporal: list[Tensor],
+    spatial_whole: list[tuple[int, int]] | None = None,
+    temporal_whole: list[tuple[int, int]] | None = None,
+) -> Tensor:
     """[plane TV of the planes in `spatial`, time smoothness and time L1 of those in
     `temporal`], each 0 (with no gradient) for an empty list, as the reference functions
-    define them: means over planes of each plane's mean."""
-    return _PlaneValues.apply(len(spatial), *spatial, *temporal)
+    define them: means over planes of each plane's mean, its terms counted on its size in
+    `*_whole` (the planes of the groups in order, their sizes before a crop) where given."""
+    counts = (_counts(spatial, False, spatial_whole), _counts(temporal, True, temporal_whole))
+    return _PlaneValues.apply(len(spatial), counts, *spatial, *temporal)
 
 
 def _planes(groups: tuple[Tensor, ...]) -> tuple[np.ndarray, ...]:
@@ -46,18 +53,23 @@ def _planes(groups: tuple[Tensor, ...]) -> tuple[np.ndarray, ...]:
     return tuple(plane for g in groups for plane in g.detach().numpy())
 
 
-def _counts(groups: tuple[Tensor, ...], temporal: bool) -> np.ndarray:
+def _counts(
+    groups: list[Tensor], temporal: bool, whole: list[tuple[int, int]] | None
+) -> np.ndarray:
     """[planes, 2]: the terms in each plane's two sums, 0 where the plane is too short for
-    them. Spatial: the steps along R1 and along R0, F·(R1 − 1)·R0 and F·R1·(R0 − 1).
-    Temporal: the second differences in time, F·(T − 2)·R, and every cell, F·T·R."""
+    them, counted on its [R1, R0] in `whole` where given, else on its own. Spatial: the
+    steps along R1 and along R0, F·(R1 − 1)·R0 and F·R1·(R0 − 1). Temporal: the second
+    differences in time, F·(T − 2)·R, and every cell, F·T·R."""
+    sizes = [(g.shape[1], *g.shape[2:]) for g in groups for _ in range(len(g))]
+    if whole:
+        sizes = [(f, r1, r0) for (f, _, _), (r1, r0) in zip(sizes, whole, strict=True)]
     rows = []
-    for g in groups:
-        _, f, r1, r0 = g.shape
+    for f, r1, r0 in sizes:
         if temporal:
-            rows += [(f * max(r1 - 2, 0) * r0, f * r1 * r0)] * len(g)
+            rows.append((f * max(r1 - 2, 0) * r0, f * r1 * r0))
         else:
-            rows += [(f * max(r1 - 1, 0) * r0, f * r1 * max(r0 - 1, 0))] * len(g)
-    return np.array(rows, dtype=np.float64)
+            rows.append((f * max(r1 - 1, 0) * r0, f * r1 * max(r0 - 1, 0)))
+    return np.array(rows, dtype=np.float64).reshape(-1, 2)
 
 
 def _per_plane(kernel: Any, planes: tuple[np.ndarray, ...], dtype: str) -> np.ndarray:
@@ -75,13 +87,15 @@ def _means(sums: np.ndarray, counts: np.ndarray) -> np.ndarray:
 
 class _PlaneValues(torch.autograd.Function):
     @staticmethod
-    def forward(ctx: Any, spatial_count: int, *groups: Tensor) -> Tensor:  # type: ignore[override]
+    def forward(  # type: ignore[override]
+        ctx: Any, spatial_count: int, counts: tuple[np.ndarray, np.ndarray], *groups: Tensor
+    ) -> Tensor:
         from dyngs.losses import plane_kernels
 
         spatial, temporal = groups[:spatial_count], groups[spatial_count:]
         dtype = str(groups[0].dtype)
         values = [0.0, 0.0, 0.0]
-        ctx.counts = (_counts(spatial, temporal=False), _counts(temporal, temporal=True))
+        ctx.counts = counts
         if spatial:
             sums = _per_plane(plane_kernels.spatial_sums, _planes(spatial), dtype)
             values[0] = float(_means(sums, ctx.counts[0]).sum(axis=1).mean())
@@ -114,4 +128,4 @@ class _PlaneValues(torch.autograd.Function):
             upstream = np.tile([g_curve, g_pull], (len(planes), 1)) / len(planes)
             run_kernel(plane_kernels.temporal_grads, thread_count(None), dtype, planes,
                        _means(upstream, ctx.counts[1]), _planes(grads[len(spatial) :]))  # fmt: skip
-        return (None, *grads)
+        return (None, None, *grads)

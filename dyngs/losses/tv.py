@@ -27,19 +27,38 @@ from jaxtyping import Float
 from torch import Tensor
 
 
-def _mean_square_step(plane: Tensor, dim: int) -> Tensor:
-    """Mean squared difference of neighbouring cells along `dim` (0 if it has one cell)."""
+def _mean_square_step(plane: Tensor, dim: int, whole: tuple[int, int] | None = None) -> Tensor:
+    """Mean squared difference of neighbouring cells along `dim`, −2 or −1 (0 if it has
+    one cell);
+    with `whole`, the sum divided by the count of steps along `dim` in a plane of that
+    [R1, R0] size (see `plane_tv`)."""
     if plane.shape[dim] < 2:
         return plane.new_zeros(())
-    return plane.diff(dim=dim).square().mean()
+    squares = plane.diff(dim=dim).square()
+    if whole is None:
+        return squares.mean()
+    rows, columns = whole
+    steps = (rows - 1) * columns if dim == -2 else rows * (columns - 1)
+    return squares.sum() / (plane[..., 0, 0].numel() * steps)
 
 
-def plane_tv(planes: list[Float[Tensor, "*F R1 R0"]]) -> Float[Tensor, ""]:
+def plane_tv(
+    planes: list[Float[Tensor, "*F R1 R0"]], whole: list[tuple[int, int]] | None = None
+) -> Float[Tensor, ""]:
     """Mean over planes of the mean squared neighbour difference along each plane axis,
-    summed over the two axes; a zero tensor for an empty list (fields without planes)."""
+    summed over the two axes; a zero tensor for an empty list (fields without planes).
+
+    `whole`, per plane, the [R1, R0] it had before the field was cut to what queries it
+    (`dyngs.fields.base.PlaneGrids.spatial_whole`): each plane's squared steps are then
+    divided by the whole plane's count, so a kept cell's share of the term, and its
+    gradient, are what they were before the cut."""
     if not planes:
         return torch.zeros(())
-    per_plane = [_mean_square_step(p, -2) + _mean_square_step(p, -1) for p in planes]
+    sizes: list[tuple[int, int] | None] = list(whole) if whole else [None] * len(planes)
+    per_plane = [
+        _mean_square_step(p, -2, size) + _mean_square_step(p, -1, size)
+        for p, size in zip(planes, sizes, strict=True)
+    ]
     return torch.stack(per_plane).mean()
 
 

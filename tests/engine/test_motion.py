@@ -25,6 +25,7 @@ from dyngs.engine.motion import (
 )
 from dyngs.engine.trainer import Trainer
 from dyngs.engine.writer import NullWriter
+from dyngs.fields import HexPlaneField
 from dyngs.fields.heads import Deltas
 from dyngs.model import CanonicalGaussians, DynamicGaussians, GaussianConfig
 from tests.engine.helpers import TINY_SCENE, field_calls, tiny_config, tiny_trainer
@@ -289,6 +290,34 @@ def test_the_rig_starts_from_its_pixels(tmp_path: Path) -> None:
     calls = field_calls(model.field)
     trainer.train_step(2)
     assert calls == [int(model.dynamic.sum())]
+
+
+@pytest.mark.parametrize("start_crop", [0.005, None])
+def test_the_rig_cuts_its_field_to_what_starts_dynamic(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], start_crop: float | None
+) -> None:
+    """The pixel start cuts the untrained field to the dynamic Gaussians' span (unless
+    `--motion.start-crop None`), the optimizer's state alike, and training goes on."""
+    motion = MotionConfig(start_crop=start_crop)
+    config = tiny_config(data=str(demo_path(RIG)), warmup_iters=2, motion=motion)
+    trainer = Trainer(config, tmp_path, NullWriter())
+    field = trainer.model.field
+    assert isinstance(field, HexPlaneField)
+    whole = sum(p.numel() for p in field.parameters())
+    for step in range(2):
+        trainer.train_step(step)
+    kept = sum(p.numel() for p in field.parameters())
+    said = " ".join(capsys.readouterr().out.split())
+    if start_crop is None:
+        assert kept == whole and "field cut" not in said
+        return
+    assert kept < 0.7 * whole and bool((field.extent.abs() < 1.0).any())
+    assert "field cut to the span of the dynamic Gaussians (0.5-99.5 % along each axis)" in said
+    before = [p.detach().clone() for p in field.parameters()]
+    trainer.train_step(2)  # the cut planes are the optimizer's and train
+    after = list(field.parameters())
+    assert all(bool(p.isfinite().all()) for p in after)
+    assert any(not torch.equal(a, b) for a, b in zip(after, before, strict=True))
 
 
 def test_the_rig_from_unchecked_points_keeps_every_gaussian_dynamic(

@@ -100,3 +100,28 @@ def test_crop_maps_grid_shaped_state_like_the_grids() -> None:
     assert crop is not None
     assert [m.shape for m in crop(moments)] == [p.shape for p in field.parameters()]
     assert all(torch.equal(a, p) for a, p in zip(crop(old), field.parameters(), strict=True))
+
+
+def test_a_trimmed_crop_leaves_the_outliers_to_the_border() -> None:
+    """With `trim`, a few far points do not hold the span open: the field keeps the nodes
+    the cluster reads (same features there), and a point beyond draws the value at the
+    kept span's face, as a point beyond the box draws the box's."""
+    dtype = torch.float64
+    field = _field(dtype)
+    cluster = _cluster(400, [0.1, -1.7, 1.0], [0.9, -0.6, 2.2], dtype, 6)
+    far = torch.tensor([[-0.9, 0.9, 4.4], [1.9, -1.9, 0.6]], dtype=dtype)
+    t = torch.full((len(cluster), 1), 0.3, dtype=dtype)
+    before = field(cluster, t)
+    inner = (cluster >= cluster.quantile(0.01, dim=0)) & (cluster <= cluster.quantile(0.99, dim=0))
+
+    assert field.crop_to(torch.cat((cluster, far)), trim=0.01) is not None
+    kept = inner.all(dim=1)
+    assert torch.allclose(field(cluster[kept], t[kept]), before[kept], rtol=1e-12, atol=1e-12)
+    assert bool((field.extent[:, 0] > -1.0).all() and (field.extent[:, 1] < 1.0).all())
+    # A far point draws what the nearest point of the kept span drew before the cut.
+    box_lower, box_size = torch.tensor(BOX.lower), torch.tensor(BOX.size)
+    lower, upper = box_lower + (field.extent[-1] + 1.0) / 2.0 * box_size
+    nearest = torch.minimum(torch.maximum(far, lower), upper)
+    fine = slice(field.features, None)  # the finest scale's features
+    reference = _field(dtype)(nearest, t[:2])[:, fine]
+    assert torch.allclose(field(far, t[:2])[:, fine], reference, rtol=1e-9, atol=1e-9)

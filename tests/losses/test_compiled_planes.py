@@ -1,18 +1,22 @@
 """The compiled plane regularizers against the PyTorch reference: the plane TV, time
 smoothness and time L1 of stacked plane groups, values and gradients, on planes too
 short for some differences, on time planes at exactly 1 (where |1 − p| has no slope),
-in float32 and float64, at any thread count; and through a HexPlane field's own groups
-in a step's `plane_terms`."""
+in float32 and float64, at any thread count; through a HexPlane field's own groups in a
+step's `plane_terms`; and on a field cut to what queries it, whose terms are counted on
+the whole planes."""
 
 from __future__ import annotations
+
+import dataclasses
 
 import pytest
 import torch
 
 from dyngs.config import LossConfig
 from dyngs.engine.objective import plane_terms
-from dyngs.fields import HexPlaneConfig
+from dyngs.fields import HexPlaneConfig, HexPlaneField
 from dyngs.fields.base import PlaneGrids
+from dyngs.fields.hexplane import PLANE_AXES
 from dyngs.losses.compiled_planes import plane_values, usable
 from dyngs.losses.temporal import time_l1_to_static, time_smoothness
 from dyngs.losses.tv import plane_tv
@@ -117,3 +121,52 @@ def test_a_fields_groups_give_the_step_the_references_terms() -> None:
         torch.testing.assert_close(compiled[name], reference[name], rtol=1e-5, atol=0)
     for mine, theirs in zip(compiled_grads, reference_grads, strict=True):
         assert float((mine - theirs).abs().max()) <= 1e-5 * float(theirs.abs().max())
+
+
+def _plane_grads(field: HexPlaneField, planes: PlaneGrids) -> list[list[torch.Tensor]]:
+    """The regularizers' gradient on each plane, per scale in PLANE_AXES order."""
+    field.zero_grad()
+    terms = plane_terms(LossConfig(), planes)
+    torch.stack(list(terms.values())).sum().backward()
+    return [[field.grids[i].grad[slot].clone() for i, slot in where] for where in field._where]
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_a_cut_field_regularizes_each_kept_cell_as_the_whole_one_did(compiled: bool) -> None:
+    """The regularizers count a cut plane's terms on its whole size: each cell the cut
+    keeps, away from the cut's edge, gets the gradient it got in the whole field (its
+    share of every mean unchanged), on the compiled path and the reference alike."""
+    box = SceneBox((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
+    gen = torch.Generator().manual_seed(0)
+    field = HexPlaneConfig(resolution=(17, 15, 16, 6), features=4).build(box, generator=gen)
+    with torch.no_grad():
+        for grid in field.grids:
+            grid.add_(0.1 * torch.randn(grid.shape, generator=gen, dtype=grid.dtype))
+    whole_grads = _plane_grads(field, field.planes())
+    corner = torch.tensor([[-0.2, -0.5, 0.1], [0.6, 0.3, 0.7]])
+    assert field.crop_to(corner) is not None
+    cut = field.planes()
+    if not compiled:
+        cut = dataclasses.replace(cut, spatial_groups=[], temporal_groups=[])
+    cut_grads = _plane_grads(field, cut)
+    for s, first in enumerate(_first_kept_nodes(field)):
+        for plane, (a, b) in enumerate(PLANE_AXES):
+            spatial = plane < 3
+            mine, theirs = cut_grads[s][plane], whole_grads[s][plane]
+            rows, columns = mine.shape[-2:]
+            rows_at = slice(first[b], first[b] + rows) if spatial else slice(None)
+            theirs = theirs[:, rows_at, first[a] : first[a] + columns]
+            if spatial:  # a cell at the cut's edge lost the steps to its dropped neighbours
+                mine, theirs = mine[:, 1:-1, 1:-1], theirs[:, 1:-1, 1:-1]
+            assert mine.numel() > 0
+            torch.testing.assert_close(mine, theirs, rtol=1e-5, atol=1e-12)
+
+
+def _first_kept_nodes(field: HexPlaneField) -> list[list[int]]:
+    """Per scale, the whole grid's index of the first node the cut kept along x, y, z."""
+    firsts = []
+    for s, sizes in enumerate(field._whole):
+        counts = torch.tensor([sizes[0][1], sizes[0][0], sizes[1][0]], dtype=torch.float64)
+        first = (field.extent[s, 0].double() + 1.0) / 2.0 * (counts - 1)
+        firsts.append(first.round().long().tolist())
+    return firsts
