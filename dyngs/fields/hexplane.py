@@ -171,7 +171,10 @@ class HexPlaneField(nn.Module):
 
     Cropping: `crop_to` cuts each scale's spatial planes down to the nodes that the points
     which query the field need; `extent` (saved with the planes) records the box-normalised
-    span each scale then covers, and points are mapped from it onto the cut planes.
+    span each scale then covers, and points are mapped from it onto the cut planes. A point
+    where the planes were cut away samples the kept span's face and is still in time
+    (`_cut_away`). `planes()` gives each plane's size before any cut beside it, on which
+    the regularizers count their terms.
     """
 
     out_dim: int
@@ -242,6 +245,7 @@ class HexPlaneField(nn.Module):
         samples: list[list[Tensor]] = []  # per scale, its groups' [G, F, 1, N] samples
         for s, groups in enumerate(self._groups):
             coords = full if not self._cropped[s] else self._local(full, s)
+            away = None if not self._cropped[s] else self._cut_away(full, s)
             samples.append([])
             for index, name, is_time in groups:
                 # Time planes are sampled as 1 + interp(plane − 1), equal to interp(plane)
@@ -251,10 +255,22 @@ class HexPlaneField(nn.Module):
                 # and small departures from 1 keep their full relative precision.
                 shift = 1.0 if is_time else 0.0
                 sampled = sample_group(self.grids[index], coords, self.get_buffer(name), shift)
+                if is_time and away is not None:
+                    sampled = torch.where(away, 1.0, sampled)
                 samples[-1].append(sampled)
         if full.device.type == "cpu" and numba_available():
             return compiled_products(samples)
         return plane_products(samples)
+
+    def _cut_away(self, coords: Float[Tensor, "N 4"], scale: int) -> Tensor:
+        """[N] whether each point lies where scale `scale`'s planes were cut away (beyond
+        a face of the kept span that is not the box's own). There the field is still in
+        time: a point samples the kept span's face in space and 1 on the time planes, as
+        a region no Gaussian trained keeps its time planes at their starting 1, so that
+        what lies there cannot move by the kept span's motion."""
+        lo, hi = self.extent[scale].to(coords.dtype)
+        xyz = coords[:, :3]
+        return ((xyz < lo) & (lo > -1.0) | (xyz > hi) & (hi < 1.0)).any(dim=1)
 
     def _local(self, coords: Float[Tensor, "N 4"], scale: int) -> Float[Tensor, "N 4"]:
         """Coordinates in scale `scale`'s planes: its [lo, hi] span mapped to [-1, 1]."""

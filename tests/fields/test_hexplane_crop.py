@@ -102,10 +102,11 @@ def test_crop_maps_grid_shaped_state_like_the_grids() -> None:
     assert all(torch.equal(a, p) for a, p in zip(crop(old), field.parameters(), strict=True))
 
 
-def test_a_trimmed_crop_leaves_the_outliers_to_the_border() -> None:
+def test_a_trimmed_crop_leaves_the_outliers_to_the_border_still_in_time() -> None:
     """With `trim`, a few far points do not hold the span open: the field keeps the nodes
-    the cluster reads (same features there), and a point beyond draws the value at the
-    kept span's face, as a point beyond the box draws the box's."""
+    the cluster reads (same features there), and a point beyond draws the kept span's
+    face in space and is still in time (its time planes 1), as the untrained room it
+    was cut from."""
     dtype = torch.float64
     field = _field(dtype)
     cluster = _cluster(400, [0.1, -1.7, 1.0], [0.9, -0.6, 2.2], dtype, 6)
@@ -118,10 +119,19 @@ def test_a_trimmed_crop_leaves_the_outliers_to_the_border() -> None:
     kept = inner.all(dim=1)
     assert torch.allclose(field(cluster[kept], t[kept]), before[kept], rtol=1e-12, atol=1e-12)
     assert bool((field.extent[:, 0] > -1.0).all() and (field.extent[:, 1] < 1.0).all())
-    # A far point draws what the nearest point of the kept span drew before the cut.
+    # A far point draws the spatial features the nearest point of the kept span drew
+    # before the cut, times time planes of 1, at every time.
     box_lower, box_size = torch.tensor(BOX.lower), torch.tensor(BOX.size)
     lower, upper = box_lower + (field.extent[-1] + 1.0) / 2.0 * box_size
     nearest = torch.minimum(torch.maximum(far, lower), upper)
+    still = _field(dtype)
+    with torch.no_grad():
+        for plane in still.planes().temporal:
+            plane.fill_(1.0)
     fine = slice(field.features, None)  # the finest scale's features
-    reference = _field(dtype)(nearest, t[:2])[:, fine]
-    assert torch.allclose(field(far, t[:2])[:, fine], reference, rtol=1e-9, atol=1e-9)
+    for time in (0.0, 0.5, 1.0):
+        when = torch.full((2, 1), time, dtype=dtype)
+        reference = still(nearest, when)[:, fine]
+        assert torch.allclose(field(far, when)[:, fine], reference, rtol=1e-9, atol=1e-9)
+    # The cluster's own points are not cut away: their motion is the field's.
+    assert not bool(field._cut_away(field.normalize(cluster[kept], t[kept]), 1).any())
