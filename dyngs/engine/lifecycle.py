@@ -336,7 +336,8 @@ class MotionSplit:
             "start dynamic; the rest start static, promoted when they move"
         )
         trim = self.config.motion.start_crop
-        if trim is not None and (said := crop_field(model, optimizer, trim)):
+        synchronised = len(scene.train.cameras) >= 2 * scene.num_timestamps
+        if trim is not None and synchronised and (said := crop_field(model, optimizer, trim)):
             self.say(said)
 
     def revisit(

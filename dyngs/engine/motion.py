@@ -83,13 +83,16 @@ class MotionConfig:
     """At the end of training, cut the field's planes to the span of the dynamic Gaussians
     (the only ones that query it): same features where they sit, no storage elsewhere."""
     start_crop: float | None = 0.005
-    """When the split starts from the pixels (`start_from_pixels`), before the field has
-    learned anything, cut its planes to the dynamic Gaussians between this quantile and
-    its complement along each axis; the few beyond (a moving pixel's background, seen
-    behind what moves) draw the kept span's border values. The regularizers count their
-    terms on the whole planes, so each kept cell is regularized as before, and a step no
-    longer pays for the planes' empty room (on a real capture the field spans the room,
-    the motion a corner of it). None keeps the field whole until the end."""
+    """When a synchronised capture's split (two or more views of each time) starts from
+    the pixels (`start_from_pixels`), before the field has learned anything, cut its planes
+    to the dynamic Gaussians between this quantile and its complement along each axis; the
+    few beyond (a moving pixel's background, seen behind what moves) draw the field as
+    still in time. The regularizers count their terms on the whole planes, so each kept
+    cell is regularized as before, and a step no longer pays for the planes' empty room (on
+    a real capture the field spans the room, the motion a corner of it). A sequence with
+    one view of each time is left whole: its split grows from the pixels' quarter to
+    nearly every Gaussian (the MuJoCo scenes'), so the start does not say where the field
+    is needed. None keeps every field whole until the end."""
 
     def __post_init__(self) -> None:
         if self.every < 1 or self.samples < 2:
