@@ -65,8 +65,14 @@ class DensifyConfig:
     """Prune Gaussians more transparent than this."""
     prune_world_size: float = 0.1
     """After the first opacity reset, prune Gaussians larger than this fraction of the extent."""
-    prune_screen_size: float = 20.0
-    """… or wider than this many pixels on screen."""
+    prune_screen_size: float = 0.0
+    """After the first opacity reset, also prune Gaussians whose radius on screen exceeded
+    this many pixels since the last refinement; 0 (the default) never does. 3DGS (Kerbl et
+    al. 2023) describes 20 px, but its code zeroed the radii before reading them, so the
+    published results never pruned so (its authors, graphdeco-inria/gaussian-splatting
+    issues #123 and #643), and gsplat leaves it off. Applied, it pruned a real capture's
+    background (large on screen by nature) at every refinement after the reset, and each
+    view drew nearly black until the next regrowth (docs/TRAINING.md)."""
     prune_importance: float = 0.5
     """Prune Gaussians that were seen but never made more than this many pixels' worth of
     any view (blending weight summed over its pixels): even wholly wrong, such a Gaussian
@@ -318,7 +324,8 @@ def plan_refinement(
         prune |= (state.count > 0) & (state.importance < config.prune_importance)
         if config.reset_opacity_every > 0 and step > config.reset_opacity_every:
             prune |= scale_max > config.prune_world_size * extent
-            prune |= state.max_radius > config.prune_screen_size
+            if config.prune_screen_size > 0:
+                prune |= state.max_radius > config.prune_screen_size
         prune |= ~c.finite_rows()
         threshold = config.absgrad_threshold if config.absgrad else config.grad_threshold
         grow = (avg >= threshold) & ~prune

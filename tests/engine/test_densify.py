@@ -151,3 +151,25 @@ def test_a_renderer_without_the_absolute_gradient_falls_back_to_the_gradient(
     said = trainer.lifecycle.console.file.getvalue()  # type: ignore[attr-defined]
     assert said.count("cannot measure the absolute gradient") == 1
     assert float(trainer.lifecycle.state.grad_sum.sum()) > 0
+
+
+def test_large_on_screen_prunes_only_when_asked(tmp_path: Path) -> None:
+    """After the first reset a Gaussian wide on screen is kept by default (3DGS's code never
+    applied its 20 px rule: the radii were zeroed before the check), and pruned with
+    `--densify.prune-screen-size`; one large in the world is pruned either way."""
+    trainer = _train_a_little(tmp_path)
+    model, state = trainer.model, trainer.lifecycle.state
+    n = len(model.canonical)
+    state.count[:] = 1.0
+    state.max_radius[:] = 5.0
+    state.max_radius[1] = 500.0  # wide on screen, small in the world
+    with torch.no_grad():
+        model.canonical.log_scales[2] = 10.0  # large in the world
+    quiet = DensifyConfig(reset_opacity_every=100, prune_importance=0.0, grad_threshold=1e9,
+                          absgrad=False)  # fmt: skip
+    for screen, pruned in ((0.0, {2}), (20.0, {1, 2})):
+        config = dataclasses.replace(quiet, prune_screen_size=screen)
+        plan = plan_refinement(config, model, state, step=200, extent=trainer.extent)
+        assert plan is not None, screen
+        kept = set(plan[0].source.tolist())
+        assert set(range(n)) - kept == pruned, screen
