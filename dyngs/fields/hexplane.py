@@ -299,8 +299,11 @@ class HexPlaneField(nn.Module):
             return None
         space = self.normalize(xyz, xyz.new_zeros(1, 1))[:, :3]
         if trim > 0:
-            ends = torch.tensor([trim, 1.0 - trim], dtype=space.dtype, device=space.device)
-            wanted = torch.quantile(space, ends, dim=0)
+            # The order statistics at or beyond the quantiles (kthvalue: no size limit,
+            # where torch.quantile takes at most 16 million values).
+            end = len(space) - 1
+            low, high = math.floor(trim * end) + 1, math.ceil((1.0 - trim) * end) + 1
+            wanted = torch.stack((space.kthvalue(low, 0).values, space.kthvalue(high, 0).values))
         else:
             wanted = torch.stack((space.min(0).values, space.max(0).values))
         nodes: list[list[tuple[int, int]]] = []
