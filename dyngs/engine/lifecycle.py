@@ -314,11 +314,11 @@ class MotionSplit:
     def start_from_pixels(self, step: int, optimizer: torch.optim.Optimizer) -> None:
         """End of the warm-up: only the Gaussians that most of the fixed cameras that see
         them see change stay dynamic. The field has not been trained yet, so the others
-        lose no deformation by turning static, and the field is cut to the dynamic ones
-        (`--motion.start-crop`). The pixel test reads what each Gaussian's
-        pixel shows, so it needs Gaussians on the surfaces: from random points or a cloud
-        nobody checked, every Gaussian stays dynamic (from mujoco-collision's noise cloud
-        the pixels started 0.1 % dynamic, and the run ended 4.6 dB lower)."""
+        lose no deformation by turning static, and on a synchronised capture the field is
+        cut to the dynamic ones (`--motion.start-crop`). The pixel test reads what each
+        Gaussian's pixel shows, so it needs Gaussians on the surfaces: from random points
+        or a cloud nobody checked, every Gaussian stays dynamic (from mujoco-collision's
+        noise cloud the pixels started 0.1 % dynamic, and the run ended 4.6 dB lower)."""
         assert self.fixed_motion is not None
         model, scene = self.model, self.data.scene
         if not scene.points_on_surfaces:

@@ -80,17 +80,17 @@ class FieldSpec(Protocol):
 @runtime_checkable
 class Croppable(Protocol):
     """A field that can drop the storage no Gaussian queries (`crop_to`): used when a
-    fixed-camera capture's split starts from its pixels, to cut the field to the span of
+    synchronised capture's split starts from its pixels, to cut the field to the span of
     the dynamic Gaussians before it is trained, and at the end of training."""
 
     def crop_to(
         self, xyz: Float[Tensor, "N 3"], trim: float = 0.0
     ) -> Callable[[Sequence[Tensor]], list[Tensor]] | None:
         """Keep what sampling at `xyz` reads (with `trim` > 0, at the points within the
-        `trim` and 1 − `trim` quantiles of each axis; those beyond it draw its border's
-        values). Returns the map that carries tensors laid out
-        like the old parameters (Adam's moments) to the new layout, or None when nothing
-        could be cut."""
+        `trim` and 1 − `trim` quantiles of each axis; a point beyond then draws the field
+        as still in time). Returns the map that carries tensors laid out like the old
+        parameters (Adam's moments) to the new layout, or None when nothing could be
+        cut."""
         ...
 
 

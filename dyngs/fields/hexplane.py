@@ -283,8 +283,8 @@ class HexPlaneField(nn.Module):
     ) -> Callable[[Sequence[Tensor]], list[Tensor]] | None:
         """Keep, at every scale, only the grid nodes that bilinear sampling at `xyz` reads
         (with `trim` > 0: at the points between the `trim` and 1 − `trim` quantiles of each
-        axis; those beyond are clamped to the kept span's faces, as points beyond the box
-        are to its faces).
+        axis; those beyond sample the kept span's faces, as points beyond the box sample
+        its faces, and are still in time: `_cut_away`).
 
         The field then costs storage only where the Gaussians that query it are (the
         dynamic ones: static Gaussians never query it), and its value at every point inside
