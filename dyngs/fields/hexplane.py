@@ -245,7 +245,7 @@ class HexPlaneField(nn.Module):
         samples: list[list[Tensor]] = []  # per scale, its groups' [G, F, 1, N] samples
         for s, groups in enumerate(self._groups):
             coords = full if not self._cropped[s] else self._local(full, s)
-            away = None if not self._cropped[s] else self._cut_away(full, s)
+            away = None if not self._cropped[s] else _cut_away(full, self.extent[s])
             samples.append([])
             for index, name, is_time in groups:
                 # Time planes are sampled as 1 + interp(plane − 1), equal to interp(plane)
@@ -261,16 +261,6 @@ class HexPlaneField(nn.Module):
         if full.device.type == "cpu" and numba_available():
             return compiled_products(samples)
         return plane_products(samples)
-
-    def _cut_away(self, coords: Float[Tensor, "N 4"], scale: int) -> Tensor:
-        """[N] whether each point lies where scale `scale`'s planes were cut away (beyond
-        a face of the kept span that is not the box's own). There the field is still in
-        time: a point samples the kept span's face in space and 1 on the time planes, as
-        a region no Gaussian trained keeps its time planes at their starting 1, so that
-        what lies there cannot move by the kept span's motion."""
-        lo, hi = self.extent[scale].to(coords.dtype)
-        xyz = coords[:, :3]
-        return ((xyz < lo) & (lo > -1.0) | (xyz > hi) & (hi < 1.0)).any(dim=1)
 
     def _local(self, coords: Float[Tensor, "N 4"], scale: int) -> Float[Tensor, "N 4"]:
         """Coordinates in scale `scale`'s planes: its [lo, hi] span mapped to [-1, 1]."""
@@ -383,33 +373,9 @@ class HexPlaneField(nn.Module):
 
     def planes(self) -> PlaneGrids:
         """Views of the planes: spatial [F, R_b, R_a] in order xy, xz, yz and temporal
-        [F, T, R] in order xt, yt, zt, scale after scale (coarsest first)."""
-        spatial: list[Tensor] = []
-        temporal: list[Tensor] = []
-        for where in self._where:
-            for plane, (index, slot) in enumerate(where):
-                view = self.grids[index][slot]
-                (spatial if plane < _SPATIAL_PLANES else temporal).append(view)
-        whole: tuple[list[tuple[int, int]], list[tuple[int, int]]] = ([], [])
-        for sizes in self._whole:
-            for plane, size in enumerate(sizes):
-                whole[plane >= _SPATIAL_PLANES].append(size)
-        # The same, plane by plane as the groups hold them.
-        at = {place: (s, plane) for s, where in enumerate(self._where)
-              for plane, place in enumerate(where)}  # fmt: skip
-        stacked: tuple[list[Tensor], list[Tensor]] = ([], [])  # spatial, temporal
-        stacked_whole: tuple[list[tuple[int, int]], list[tuple[int, int]]] = ([], [])
-        for groups in self._groups:
-            for index, _, is_time in groups:
-                stacked[is_time].append(self.grids[index])
-                for slot in range(len(self.grids[index])):
-                    s, plane = at[(index, slot)]
-                    stacked_whole[is_time].append(self._whole[s][plane])
-        return PlaneGrids(
-            spatial=spatial, temporal=temporal, spatial_groups=stacked[0],
-            temporal_groups=stacked[1], spatial_whole=whole[0], temporal_whole=whole[1],
-            spatial_groups_whole=stacked_whole[0], temporal_groups_whole=stacked_whole[1],
-        )  # fmt: skip
+        [F, T, R] in order xt, yt, zt, scale after scale (coarsest first); with the
+        stacked groups and every plane's size before any cut (`_plane_grids`)."""
+        return _plane_grids(list(self.grids), self._where, self._groups, self._whole)
 
     def extra_repr(self) -> str:
         c = self.config
@@ -417,6 +383,49 @@ class HexPlaneField(nn.Module):
             f"resolution={c.resolution or DEFAULT_RESOLUTION}, multires={c.multires}, "
             f"features={self.features}, out_dim={self.out_dim}"
         )
+
+
+def _plane_grids(
+    grids: Sequence[Tensor],
+    where: list[list[tuple[int, int]]],
+    groups: list[list[tuple[int, str, bool]]],
+    whole: list[list[tuple[int, int]]],
+) -> PlaneGrids:
+    """A HexPlane's `PlaneGrids`: its plane views in canonical order (`where[s][plane]` is
+    each plane's (group, slot)), its stacked groups, and each plane's size before any cut
+    (`whole[s][plane]`) in both orders."""
+    views: tuple[list[Tensor], list[Tensor]] = ([], [])  # spatial, temporal
+    sizes: tuple[list[tuple[int, int]], list[tuple[int, int]]] = ([], [])
+    for s, places in enumerate(where):
+        for plane, (index, slot) in enumerate(places):
+            views[plane >= _SPATIAL_PLANES].append(grids[index][slot])
+            sizes[plane >= _SPATIAL_PLANES].append(whole[s][plane])
+    at = {place: (s, plane) for s, places in enumerate(where)
+          for plane, place in enumerate(places)}  # fmt: skip
+    stacked: tuple[list[Tensor], list[Tensor]] = ([], [])
+    stacked_sizes: tuple[list[tuple[int, int]], list[tuple[int, int]]] = ([], [])
+    for scale_groups in groups:
+        for index, _, is_time in scale_groups:
+            stacked[is_time].append(grids[index])
+            for slot in range(len(grids[index])):
+                s, plane = at[(index, slot)]
+                stacked_sizes[is_time].append(whole[s][plane])
+    return PlaneGrids(
+        spatial=views[0], temporal=views[1], spatial_groups=stacked[0],
+        temporal_groups=stacked[1], spatial_whole=sizes[0], temporal_whole=sizes[1],
+        spatial_groups_whole=stacked_sizes[0], temporal_groups_whole=stacked_sizes[1],
+    )  # fmt: skip
+
+
+def _cut_away(coords: Float[Tensor, "N 4"], extent: Float[Tensor, "2 3"]) -> Tensor:
+    """[N] whether each point lies where a scale's planes were cut away: beyond a face of
+    its kept span `extent` ([lo, hi], box-normalised) that is not the box's own. There the
+    field is still in time: a point samples the kept span's face in space and 1 on the
+    time planes, as a region no Gaussian trained keeps its time planes at their starting
+    1, so that what lies there cannot move by the kept span's motion."""
+    lo, hi = extent.to(coords.dtype)
+    xyz = coords[:, :3]
+    return ((xyz < lo) & (lo > -1.0) | (xyz > hi) & (hi < 1.0)).any(dim=1)
 
 
 def plane_products(samples: Sequence[Sequence[Tensor]]) -> Float[Tensor, "N SF"]:

@@ -9,6 +9,7 @@ import torch
 from torch import Tensor
 
 from dyngs.fields import HexPlaneConfig, HexPlaneField
+from dyngs.fields.hexplane import _cut_away
 from dyngs.types import SceneBox
 from tests.fields.test_hexplane import _perturb_time_planes
 
@@ -134,4 +135,4 @@ def test_a_trimmed_crop_leaves_the_outliers_to_the_border_still_in_time() -> Non
         reference = still(nearest, when)[:, fine]
         assert torch.allclose(field(far, when)[:, fine], reference, rtol=1e-9, atol=1e-9)
     # The cluster's own points are not cut away: their motion is the field's.
-    assert not bool(field._cut_away(field.normalize(cluster[kept], t[kept]), 1).any())
+    assert not bool(_cut_away(field.normalize(cluster[kept], t[kept]), field.extent[1]).any())
