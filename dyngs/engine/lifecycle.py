@@ -35,6 +35,7 @@ from torch import Tensor
 from dyngs.config import TrainConfig
 from dyngs.datamanagers.datamanager import DataManager, TrainBatch
 from dyngs.engine import schedules
+from dyngs.engine.capacity import data_scale
 from dyngs.engine.densify import (
     DensifyState,
     StepStatistics,
@@ -336,7 +337,7 @@ class MotionSplit:
             "start dynamic; the rest start static, promoted when they move"
         )
         trim = self.config.motion.start_crop
-        synchronised = len(scene.train.cameras) >= 2 * scene.num_timestamps
+        synchronised = data_scale(scene).views_per_timestamp >= 2
         if trim is not None and synchronised and (said := crop_field(model, optimizer, trim)):
             self.say(said)
 

@@ -288,14 +288,11 @@ class HexPlaneField(nn.Module):
         if len(xyz) == 0:
             return None
         space = self.normalize(xyz, xyz.new_zeros(1, 1))[:, :3]
-        if trim > 0:
-            # The order statistics at or beyond the quantiles (kthvalue: no size limit,
-            # where torch.quantile takes at most 16 million values).
-            end = len(space) - 1
-            low, high = math.floor(trim * end) + 1, math.ceil((1.0 - trim) * end) + 1
-            wanted = torch.stack((space.kthvalue(low, 0).values, space.kthvalue(high, 0).values))
-        else:
-            wanted = torch.stack((space.min(0).values, space.max(0).values))
+        # The order statistics at or beyond the quantiles, the least and the greatest when
+        # `trim` is 0 (kthvalue: torch.quantile takes at most 16 million values).
+        end = len(space) - 1
+        low, high = math.floor(trim * end) + 1, math.ceil((1.0 - trim) * end) + 1
+        wanted = torch.stack((space.kthvalue(low, 0).values, space.kthvalue(high, 0).values))
         nodes: list[list[tuple[int, int]]] = []
         for s in range(len(self._groups)):
             position = self._node_positions(s, wanted)

@@ -29,9 +29,8 @@ from torch import Tensor
 
 def _mean_square_step(plane: Tensor, dim: int, whole: tuple[int, int] | None = None) -> Tensor:
     """Mean squared difference of neighbouring cells along `dim`, −2 or −1 (0 if it has
-    one cell);
-    with `whole`, the sum divided by the count of steps along `dim` in a plane of that
-    [R1, R0] size (see `plane_tv`)."""
+    one cell); with `whole`, their sum divided by the count of steps along `dim` in a
+    plane of that [R1, R0] size (see `plane_tv`)."""
     if plane.shape[dim] < 2:
         return plane.new_zeros(())
     squares = plane.diff(dim=dim).square()
