@@ -23,6 +23,7 @@ import torch
 
 from dyngs.config import TrainConfig
 from dyngs.datamanagers.base import SceneData
+from dyngs.fields.hexplane import time_cells
 from dyngs.types import DataScale, DataSized
 
 BUDGET_LIMITS = (5_000, 3_000_000)
@@ -98,6 +99,8 @@ def resolve_capacity(config: TrainConfig, scene: SceneData) -> TrainConfig:
     densify = config.densify
     if densify.max_gaussians is None:
         densify = dataclasses.replace(densify, max_gaussians=budget)
+    if densify.grow_min_life is None:
+        densify = dataclasses.replace(densify, grow_min_life=1.0 / time_cells(scale))
     gaussians = config.gaussians
     if gaussians.max_init_points is None:  # the data-sized budget, even when it was overridden
         gaussians = dataclasses.replace(gaussians, max_init_points=budget)

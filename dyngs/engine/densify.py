@@ -89,6 +89,16 @@ class DensifyConfig:
     is counted in whole-view pixels: the same sum of blending weights, estimated on a
     quarter of the pixels. On a real capture the whole views made the pass a large share
     of a budgeted run's time (docs/CAPACITY.md). 1: whole."""
+    grow_min_life: float | None = None
+    """Gaussians whose temporal opacity lives shorter than this (its σ, in units of the
+    sequence) are neither cloned nor split. Such a Gaussian draws a few frames, and so
+    would its copies: they fit those training frames, and between them, where held-out
+    times lie, they fade out and in. Left to grow, they drew mujoco-scale_change's late
+    times in two seeds of five, with holes and wisps, where the deformation carried
+    long-lived Gaussians there in the others (docs/TRAINING.md, "Gaussians that live a few
+    frames do not grow"). None: one time cell of the data-sized field (`time_cells`: six
+    timestamps' span when one view sees each time, two from three views on); 0: every
+    Gaussian may grow."""
     max_gaussians: int | None = None
     """The Gaussian budget: densification never goes beyond it (highest gradients first). The
     cap grows linearly toward it over the densification window. None: sized from the data
@@ -107,6 +117,8 @@ class DensifyConfig:
             raise ConfigError(
                 f"--densify.pause-after-reset must be ≥ 0, got {self.pause_after_reset}"
             )
+        if self.grow_min_life is not None and not self.grow_min_life >= 0.0:  # NaN fails
+            raise ConfigError(f"--densify.grow-min-life must be ≥ 0, got {self.grow_min_life}")
 
 
 @dataclass
@@ -329,6 +341,8 @@ def plan_refinement(
         prune |= ~c.finite_rows()
         threshold = config.absgrad_threshold if config.absgrad else config.grad_threshold
         grow = (avg >= threshold) & ~prune
+        if config.grow_min_life:  # None (not yet sized) and 0 let every Gaussian grow
+            grow &= c.time_log_scales >= math.log(config.grow_min_life)
         # Respect the budget: each clone adds one, each split adds children - 1.
         room = (2**62 if budget is None else budget) - (n - int(prune.sum()))
         if room <= 0:

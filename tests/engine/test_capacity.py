@@ -94,12 +94,14 @@ def test_explicit_sizes_are_kept_and_missing_ones_filled() -> None:
     assert resolved.field.features == feature_channels(data_scale(scene))
     assert resolved.densify.max_gaussians == gaussian_budget(data_scale(scene))
     assert resolved.gaussians.max_init_points == gaussian_budget(data_scale(scene))
+    assert resolved.densify.grow_min_life == 1.0 / time_cells(data_scale(scene))
     explicit = TrainConfig(
         field=HexPlaneConfig(resolution=(5, 6, 7, 8), features=8),
-        densify=DensifyConfig(max_gaussians=1234),
+        densify=DensifyConfig(max_gaussians=1234, grow_min_life=0.0),
     )
     kept = resolve_capacity(explicit, scene)
     assert kept.field == explicit.field and kept.densify.max_gaussians == 1234
+    assert kept.densify.grow_min_life == 0.0
 
 
 def test_gaussians_that_make_almost_nothing_of_any_view_are_pruned(tmp_path: Path) -> None:

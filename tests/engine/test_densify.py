@@ -2,6 +2,7 @@ from __future__ import annotations
 
 import dataclasses
 import io
+import math
 from pathlib import Path
 
 import pytest
@@ -11,7 +12,7 @@ from rich.console import Console
 from dyngs.engine import schedules
 from dyngs.engine.densify import DensifyConfig, apply_topology, plan_refinement
 from dyngs.errors import ConfigError
-from dyngs.model import GAUSSIAN_PARAMS
+from dyngs.model import ETERNAL, GAUSSIAN_PARAMS
 from tests.engine.helpers import tiny_config, tiny_trainer
 
 
@@ -105,6 +106,33 @@ def test_importance_views_must_not_be_negative() -> None:
         DensifyConfig(importance_views=-1)
     with pytest.raises(ConfigError, match="pause-after-reset must be ≥ 0"):
         DensifyConfig(pause_after_reset=-1)
+    for life in (-0.1, float("nan")):
+        with pytest.raises(ConfigError, match="grow-min-life must be ≥ 0"):
+            DensifyConfig(grow_min_life=life)
+
+
+def test_gaussians_that_live_a_few_frames_do_not_grow(tmp_path: Path) -> None:
+    """With every Gaussian asking to grow, one whose temporal σ is under `grow_min_life` is
+    neither cloned nor split, one just above it and an eternal one are; at 0 (and before
+    the data sized it, None) all three grow."""
+    trainer = _train_a_little(tmp_path)
+    model, state = trainer.model, trainer.lifecycle.state
+    state.grad_sum[:] = 1.0
+    state.count[:] = 1.0
+    with torch.no_grad():
+        model.canonical.time_log_scales[0] = math.log(0.02)  # two to three frames of 126
+        model.canonical.time_log_scales[1] = math.log(0.06)
+        model.canonical.time_log_scales[2] = ETERNAL
+        model.canonical.log_scales[:3] = 5.0  # large: split, not cloned
+    grown = {}
+    for life in (0.05, 0.0, None):
+        config = DensifyConfig(reset_opacity_every=0, prune_importance=0.0, grow_min_life=life)
+        plan = plan_refinement(config, model, state, step=100, extent=trainer.extent)
+        assert plan is not None
+        grown[life] = [int((plan[0].source == i).sum()) for i in range(3)]
+    children = DensifyConfig().split_children
+    assert grown[0.05] == [1, children, children]
+    assert grown[0.0] == grown[None] == [children] * 3
 
 
 def test_absgrad_accumulates_the_absolute_gradient_and_meets_its_own_threshold(
