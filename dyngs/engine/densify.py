@@ -94,9 +94,9 @@ class DensifyConfig:
     sequence) are neither cloned nor split. Such a Gaussian draws a few frames, and so
     would its copies: they fit those training frames, and between them, where held-out
     times lie, they fade out and in. Left to grow, they drew mujoco-scale_change's late
-    times in two seeds of five, with holes and wisps, where the deformation carried
-    long-lived Gaussians there in the others (docs/TRAINING.md, "Gaussians that live a few
-    frames do not grow"). None: one time cell of the data-sized field (`time_cells`: six
+    times in some seeds, with holes and wisps, where in the others the deformation
+    carried long-lived Gaussians there (docs/ACCURACY.md, "Short-lived Gaussians do not
+    grow"). None: one time cell of the data-sized field (`time_cells`: six
     timestamps' span when one view sees each time, two from three views on); 0: every
     Gaussian may grow."""
     max_gaussians: int | None = None
