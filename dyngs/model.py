@@ -234,12 +234,20 @@ class CanonicalGaussians(nn.Module):
         """Gaussians with temporal opacity."""
         return self.time_log_scales < TEMPORAL_LIMIT
 
-    def temporal_factor(self, t: float) -> Float[Tensor, " N"]:
-        """What each Gaussian's opacity is multiplied by at time t: exp(−½((t − τ)/σ)²), the
-        temporal radial basis of Spacetime Gaussians (Li et al. 2024), for temporal
-        Gaussians; exactly 1, with no gradient to τ or σ, for eternal ones."""
+    def temporal_factor(self, t: float | Float[Tensor, " N"]) -> Float[Tensor, " N"]:
+        """What each Gaussian's opacity is multiplied by at time t (one time, or one per
+        Gaussian): exp(−½((t − τ)/σ)²), the temporal radial basis of Spacetime Gaussians (Li
+        et al. 2024), for temporal Gaussians; exactly 1, with no gradient to τ or σ, for
+        eternal ones."""
         z = (t - self.time_centers) * torch.exp(-self.time_log_scales.clamp_max(TEMPORAL_LIMIT))
         return torch.where(self.temporal(), torch.exp(-0.5 * z * z), 1.0)
+
+    def peak_presence(self) -> Float[Tensor, " N"]:
+        """The largest temporal factor each Gaussian reaches at a time of the sequence, t ∈
+        [0, 1]: its factor at the time nearest τ. Under 1 only for a Gaussian whose τ has
+        left the sequence, which no view sees at full opacity again."""
+        with torch.no_grad():
+            return self.temporal_factor(self.time_centers.clamp(0.0, 1.0))
 
     def params(self) -> dict[str, nn.Parameter]:
         return {name: getattr(self, name) for name in GAUSSIAN_PARAMS}

@@ -62,7 +62,9 @@ class DensifyConfig:
     split_shrink: float = 1.6
     """Children of a split are this much smaller (3DGS: 0.8 × number of children)."""
     prune_opacity: float = 0.005
-    """Prune Gaussians more transparent than this."""
+    """Prune Gaussians more transparent than this at every time of the sequence (opacity
+    × the largest temporal factor over t ∈ [0, 1]): a temporal Gaussian whose lifetime
+    has drifted past either end draws nothing, and no view's gradient brings it back."""
     prune_world_size: float = 0.1
     """After the first opacity reset, prune Gaussians larger than this fraction of the extent."""
     prune_screen_size: float = 0.0
@@ -332,7 +334,7 @@ def plan_refinement(
         n = len(c)
         avg = state.grad_sum / state.count.clamp_min(1)
         scale_max = c.log_scales.exp().max(dim=-1).values
-        prune = torch.sigmoid(c.opacity_logits) < config.prune_opacity
+        prune = torch.sigmoid(c.opacity_logits) * c.peak_presence() < config.prune_opacity
         prune |= (state.count > 0) & (state.importance < config.prune_importance)
         if config.reset_opacity_every > 0 and step > config.reset_opacity_every:
             prune |= scale_max > config.prune_world_size * extent

@@ -135,6 +135,29 @@ def test_gaussians_that_live_a_few_frames_do_not_grow(tmp_path: Path) -> None:
     assert grown[0.0] == grown[None] == [children] * 3
 
 
+def test_gaussians_whose_lifetime_left_the_sequence_are_pruned(tmp_path: Path) -> None:
+    """Opaque Gaussians are pruned when their presence at every time in [0, 1] leaves them
+    under `prune_opacity`: τ far past the end, or before the start; kept when τ is just
+    past an end (still present there) and when eternal, whatever their τ."""
+    trainer = _train_a_little(tmp_path)
+    model, state = trainer.model, trainer.lifecycle.state
+    lives = [(1.5, 0.05), (-0.4, 0.1), (1.05, 0.05), (0.5, 0.01), (5.0, math.inf)]
+    with torch.no_grad():
+        c = model.canonical
+        c.opacity_logits[: len(lives)] = 5.0
+        for i, (tau, sigma) in enumerate(lives):
+            c.time_centers[i] = tau
+            c.time_log_scales[i] = math.log(sigma) if math.isfinite(sigma) else ETERNAL
+    peak = model.canonical.peak_presence()[: len(lives)]
+    expected = [math.exp(-0.5 * ((min(max(tau, 0), 1) - tau) / s) ** 2) for tau, s in lives]
+    assert peak.tolist() == pytest.approx(expected, rel=1e-5)
+    config = DensifyConfig(reset_opacity_every=0, prune_importance=0.0)
+    plan = plan_refinement(config, model, state, step=100, extent=trainer.extent)
+    assert plan is not None
+    kept = [bool((plan[0].source == i).any()) for i in range(len(lives))]
+    assert kept == [False, False, True, True, True]
+
+
 def test_absgrad_accumulates_the_absolute_gradient_and_meets_its_own_threshold(
     tmp_path: Path,
 ) -> None:
